@@ -8,7 +8,14 @@
 //!
 //! - [`graph`]: the pose-graph model, edges with their angle variance σ² = (Ω⁻¹)_θθ;
 //! - [`io`]: g2o / TORO readers (streaming and whole-file) and a g2o writer;
-//! - [`sim`]: a seeded Manhattan-world simulator with ground truth.
+//! - [`sim`]: a seeded Manhattan-world simulator with ground truth;
+//! - [`tree`]: spanning trees (odometric, minimum-weight) and forests;
+//! - [`cycles`]: cycle bases (fundamental, incremental) as signed edge lists;
+//! - [`gamma`]: the Gaussian model of the cycle integers γ and its sequential conditioning;
+//! - [`screening`]: first (per-cycle) and second (joint) screening, success-rate bound;
+//! - [`wraps`]: from γ to the wraps k of every edge;
+//! - [`estimate`]: orientations θ* for a hypothesis (sparse Cholesky of the Laplacian);
+//! - [`batch`]: the paper's pipeline, driving the modules above.
 //!
 //! ```
 //! use so2lin::sim::{simulate, SimConfig};
@@ -20,9 +27,16 @@
 //! ```
 #![warn(missing_docs)]
 
+pub mod batch;
+pub mod cycles;
+pub mod estimate;
+pub mod gamma;
 pub mod graph;
 pub mod io;
+pub mod screening;
 pub mod sim;
+pub mod tree;
+pub mod wraps;
 
 pub use graph::{Edge, GraphError, Information, NodeId, NodePolicy, Pose2, PoseGraph};
 pub use io::{InfoOrder, ReadError, ReadOptions, Reader, Record};

@@ -1,0 +1,193 @@
+//! `so2lin screen`: the batch pipeline on a file, with the paper's tables.
+
+use std::io::Write;
+use std::path::Path;
+use std::time::Instant;
+
+use serde_json::json;
+
+use so2lin::batch::{self, BatchConfig, BatchResult, Iteration, SecondOutcome};
+use so2lin::estimate::OrientationEstimator;
+use so2lin::graph::PoseGraph;
+use so2lin::io::InfoOrder;
+use so2lin::wraps::WrapSolver;
+
+/// Options of the `screen` command.
+pub struct ScreenArgs<'a> {
+    pub file: &'a Path,
+    pub order: InfoOrder,
+    pub config: BatchConfig,
+    pub orientations: Option<&'a Path>,
+    pub json: bool,
+}
+
+/// The best hypothesis' orientations and the time it took.
+pub struct Estimate {
+    pub theta: Vec<f64>,
+    pub chi2: f64,
+    pub seconds: f64,
+}
+
+/// Orientations of the best hypothesis (the first in χ² order).
+pub fn estimate_best(graph: &PoseGraph, r: &BatchResult) -> Result<Option<Estimate>, String> {
+    let Some(best) = r.hypotheses.first() else {
+        return Ok(None);
+    };
+    let t = Instant::now();
+    let solver = WrapSolver::new(&r.basis.cycles, graph.edge_count()).map_err(|e| e.to_string())?;
+    let k = solver
+        .wraps(&r.basis.cycles, &r.gamma(best))
+        .map_err(|e| e.to_string())?;
+    let est = OrientationEstimator::new(graph).map_err(|e| e.to_string())?;
+    let theta = est.orientations(&k);
+    let chi2 = est.cost(&theta, &k);
+    Ok(Some(Estimate {
+        theta,
+        chi2,
+        seconds: t.elapsed().as_secs_f64(),
+    }))
+}
+
+pub fn run(args: ScreenArgs) -> Result<(), String> {
+    let t0 = Instant::now();
+    let (graph, _) = crate::load(args.file, args.order)?;
+    let read_s = t0.elapsed().as_secs_f64();
+    let r = batch::screen(&graph, &args.config).map_err(|e| e.to_string())?;
+    let est = estimate_best(&graph, &r)?;
+    let total = t0.elapsed().as_secs_f64();
+    if let (Some(path), Some(e)) = (args.orientations, &est) {
+        write_orientations(path, &graph, &e.theta)?;
+    }
+    let sigma2: Vec<f64> = graph.edges().iter().map(|e| e.sigma2()).collect();
+    let estimate_s = est.as_ref().map_or(0.0, |e| e.seconds);
+    if args.json {
+        let second = match r.outcome {
+            SecondOutcome::TooMany(t) => json!({"too_many": t.found, "cap": t.cap}),
+            _ => json!(r.second),
+        };
+        let v = json!({
+            "file": args.file.display().to_string(),
+            "nodes": graph.node_count(),
+            "edges": graph.edge_count(),
+            "cycles": r.model.len(),
+            "config": args.config,
+            "basis": {
+                "kind": r.basis.kind,
+                "weight": r.basis.weight(&sigma2),
+                "mean_cycle_length": r.basis.mean_length(),
+                "max_cycle_length": r.basis.max_length(),
+                "seconds": r.basis_seconds,
+            },
+            "first_screening": r.first,
+            "second_screening": second,
+            "outcome": r.outcome,
+            "determined": r.determined,
+            "ambiguous": r.ambiguous.len(),
+            "inconsistent_cycles": r.inconsistent,
+            "hypotheses": r.hypotheses.iter().map(|h| json!({"chi2": h.chi2, "p_value": h.p_value})).collect::<Vec<_>>(),
+            "best_chi2_from_orientations": est.as_ref().map(|e| e.chi2),
+            "success_probability_lower_bound": r.success_lower_bound,
+            "seconds": {"read": read_s, "basis": r.basis_seconds, "screening": r.screening_seconds,
+                        "estimate": estimate_s, "total": total},
+        });
+        println!("{v}");
+        return Ok(());
+    }
+    let s = args.config.screening;
+    println!(
+        "{}: {} nodes, {} edges, {} cycles",
+        args.file.display(),
+        graph.node_count(),
+        graph.edge_count(),
+        r.model.len()
+    );
+    println!(
+        "basis {:?}: weight {:.4}, mean cycle length {:.1}, max {}, {:.4} s",
+        r.basis.kind,
+        r.basis.weight(&sigma2),
+        r.basis.mean_length(),
+        r.basis.max_length(),
+        r.basis_seconds
+    );
+    println!(
+        "first screening (α = {}, {} dof, {}; q = {:.3})",
+        s.alpha,
+        s.dof,
+        if s.family_wise {
+            "family-wise α/ℓ"
+        } else {
+            "per cycle"
+        },
+        s.quantile(r.model.len())
+    );
+    print_table(&r.first);
+    match r.outcome {
+        SecondOutcome::TooMany(t) => println!(
+            "second screening: too many hypotheses: {} ≥ cap {} (showing the bootstrapped answer)",
+            t.found, t.cap
+        ),
+        SecondOutcome::NoneInside => println!(
+            "second screening: no candidate vector passes the joint test (inconsistent data); showing the bootstrapped answer"
+        ),
+        SecondOutcome::Complete if r.second.is_empty() => {
+            println!(
+                "second screening: nothing to fix ({} ambiguous cycles)",
+                r.ambiguous.len()
+            )
+        }
+        SecondOutcome::Complete => {
+            println!("second screening");
+            print_table(&r.second);
+        }
+    }
+    if !r.inconsistent.is_empty() {
+        println!(
+            "inconsistent cycles (interval without an integer): {}",
+            r.inconsistent.len()
+        );
+        for c in r.inconsistent.iter().take(10) {
+            println!(
+                "  cycle {} ({} edges, first {:?}): residual {:.2} σ",
+                c.cycle,
+                c.edges.len(),
+                &c.edges[..c.edges.len().min(4)],
+                c.residual
+            );
+        }
+    }
+    println!(
+        "determined {} of {} cycles; {} ambiguous; {} hypotheses",
+        r.determined,
+        r.model.len(),
+        r.ambiguous.len(),
+        r.hypotheses.len()
+    );
+    for (k, h) in r.hypotheses.iter().take(10).enumerate() {
+        println!("  #{:<3} χ² = {:<12.4} p = {:.4}", k + 1, h.chi2, h.p_value);
+    }
+    println!("success probability ≥ {:.6}", r.success_lower_bound);
+    println!(
+        "seconds: read {read_s:.4}, basis {:.4}, screening {:.4}, estimate {estimate_s:.4}, total {total:.4}",
+        r.basis_seconds, r.screening_seconds
+    );
+    Ok(())
+}
+
+fn print_table(rows: &[Iteration]) {
+    println!("  iter  determined %   density   log10|Γ|   seconds");
+    for it in rows {
+        println!(
+            "  {:>4}  {:>11.2}   {:>7.4}   {:>8.2}   {:>7.4}",
+            it.iteration, it.determined_percent, it.density, it.log10_candidates, it.seconds
+        );
+    }
+}
+
+fn write_orientations(path: &Path, graph: &PoseGraph, theta: &[f64]) -> Result<(), String> {
+    let err = |e: std::io::Error| format!("{}: {e}", path.display());
+    let mut w = std::io::BufWriter::new(std::fs::File::create(path).map_err(err)?);
+    for (node, t) in graph.nodes().iter().zip(theta) {
+        writeln!(w, "{} {:?}", node.id, t).map_err(err)?;
+    }
+    w.flush().map_err(err)
+}
