@@ -9,6 +9,7 @@ use std::time::Instant;
 use crate::cycles::{BasisKind, CycleBasis};
 use crate::gamma::{Conditioner, GammaModel, Moments, SingularError};
 use crate::graph::PoseGraph;
+use crate::wraps::{WrapError, WrapSolver};
 use crate::screening::{
     self, ConfigError, Interval, JointGaussian, ScreeningConfig, TooMany, chi2_p_value,
     chi2_quantile,
@@ -89,6 +90,8 @@ pub struct Hypothesis {
 /// Everything the pipeline produced.
 #[derive(Clone, Debug)]
 pub struct BatchResult {
+    /// Number of edges of the graph.
+    pub edges: usize,
     /// The basis used.
     pub basis: CycleBasis,
     /// The γ model of that basis.
@@ -125,6 +128,12 @@ impl BatchResult {
             g[i] = v;
         }
         g
+    }
+
+    /// The wraps k of every edge for a hypothesis (`k = [0; C_L⁻¹ γ]`).
+    pub fn wraps(&self, h: &Hypothesis) -> Result<Vec<i64>, WrapError> {
+        let edges = self.edges;
+        WrapSolver::new(&self.basis.cycles, edges)?.wraps(&self.basis.cycles, &self.gamma(h))
     }
 }
 
@@ -287,7 +296,7 @@ pub fn screen(graph: &PoseGraph, config: &BatchConfig) -> Result<BatchResult, Ba
             var: f64::NAN,
         })?;
         let boxes: Vec<Interval> = set.iter().map(|&i| st.intervals[i]).collect();
-        let r2 = chi2_quantile(set.len() as f64, 1.0 - cfg.alpha);
+        let r2 = chi2_quantile(set.len() as f64, 1.0 - cfg.joint_level());
         let found = match jg.enumerate(&boxes, r2, cfg.max_hypotheses) {
             Err(too_many) => {
                 let boot = jg.bootstrap(&boxes);
@@ -354,6 +363,7 @@ pub fn screen(graph: &PoseGraph, config: &BatchConfig) -> Result<BatchResult, Ba
     let inconsistent = st.inconsistent.into_iter().flatten().collect();
     let determined = st.cond.len();
     Ok(BatchResult {
+        edges: graph.edge_count(),
         basis,
         first,
         second,

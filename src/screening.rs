@@ -3,9 +3,9 @@
 //! **First screening** (per cycle): with `q = sqrt(χ²_d⁻¹(1 − α'))`, the candidates of γ_i are
 //! the integers in `[m_i − q s_i, m_i + q s_i]`, where `(m_i, s_i²)` are the mean and variance of
 //! γ_i conditioned on the determined set U. A cycle with a single candidate is determined
-//! (moved to U); iterate until nothing changes. `α' = α` per cycle (the paper), or `α/ℓ`
-//! (Bonferroni, [`ScreeningConfig::family_wise`]) so the whole surviving set contains the truth
-//! with probability ≥ 1 − α. An interval holding no integer marks the cycle **inconsistent** at
+//! (moved to U); iterate until nothing changes. `α' = α` per cycle (the paper), or `α/(2ℓ)`
+//! (Bonferroni, [`ScreeningConfig::family_wise`], with the other α/2 for the joint test) so
+//! the whole surviving set contains the truth with probability ≥ 1 − α. An interval holding no integer marks the cycle **inconsistent** at
 //! that level: it stays ambiguous with its two nearest integers, and is reported.
 //!
 //! **Second screening** (joint): the vectors `v` of the candidate box with
@@ -80,13 +80,18 @@ impl ScreeningConfig {
         Ok(())
     }
 
-    /// Per-cycle level: α, or α/ℓ when family-wise.
+    /// Per-cycle level: α, or α/(2ℓ) when family-wise.
+    ///
+    /// Family-wise, the ℓ per-cycle tests share α/2 (Bonferroni) and the joint ellipsoid test
+    /// of the second screening gets the other α/2 ([`joint_level`](Self::joint_level)), so by
+    /// the union bound the surviving set misses the true γ with probability ≤ α.
     pub fn level(&self, cycles: usize) -> f64 {
-        if self.family_wise {
-            self.alpha / cycles.max(1) as f64
-        } else {
-            self.alpha
-        }
+        if self.family_wise { self.alpha / (2 * cycles.max(1)) as f64 } else { self.alpha }
+    }
+
+    /// Level of the joint (ellipsoid) test: α, or α/2 when family-wise.
+    pub fn joint_level(&self) -> f64 {
+        if self.family_wise { self.alpha / 2.0 } else { self.alpha }
     }
 
     /// Interval half-width factor `q = sqrt(χ²_d⁻¹(1 − level))`.
@@ -179,10 +184,12 @@ pub fn success_lower_bound(sds: impl IntoIterator<Item = f64>) -> f64 {
 /// Why enumeration stopped early.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
 pub struct TooMany {
-    /// Vectors found before stopping (≥ `cap` unless the search budget ran out first).
+    /// Vectors found before stopping (`cap` unless the search budget ran out first).
     pub found: usize,
     /// The cap.
     pub cap: usize,
+    /// Partial vectors visited by the search (its budget is `64 · cap`).
+    pub visited: usize,
 }
 
 /// `Q = L D Lᵀ` of a dense symmetric matrix (row-major), L unit lower triangular.
@@ -316,7 +323,7 @@ impl JointGaussian {
             if visits > budget {
                 return Err(TooMany {
                     found: out.len(),
-                    cap,
+                    cap, visited: visits,
                 });
             }
             e[lv] = cur[lv] as f64 - center[lv];
@@ -334,7 +341,7 @@ impl JointGaussian {
                 if out.len() >= cap {
                     return Err(TooMany {
                         found: out.len(),
-                        cap,
+                        cap, visited: visits,
                     });
                 }
                 cur[lv] += 1;
@@ -361,7 +368,8 @@ mod tests {
             ..per
         };
         assert!(fw.quantile(100) > per.quantile(100));
-        assert!((fw.level(100) - 1e-4).abs() < 1e-18);
+        assert!((fw.level(100) - 5e-5).abs() < 1e-18);
+        assert!((fw.joint_level() - 5e-3).abs() < 1e-18);
     }
 
     #[test]
@@ -462,7 +470,7 @@ mod tests {
             }
         }
         let capped = jg.enumerate(&boxes, 30.0, 5);
-        assert_eq!(capped, Err(TooMany { found: 5, cap: 5 }));
+        assert!(matches!(capped, Err(TooMany { found: 5, cap: 5, .. })));
     }
 
     #[test]

@@ -10,7 +10,6 @@ use so2lin::batch::{self, BatchConfig, BatchResult, Iteration, SecondOutcome};
 use so2lin::estimate::OrientationEstimator;
 use so2lin::graph::PoseGraph;
 use so2lin::io::InfoOrder;
-use so2lin::wraps::WrapSolver;
 
 /// Options of the `screen` command.
 pub struct ScreenArgs<'a> {
@@ -34,10 +33,7 @@ pub fn estimate_best(graph: &PoseGraph, r: &BatchResult) -> Result<Option<Estima
         return Ok(None);
     };
     let t = Instant::now();
-    let solver = WrapSolver::new(&r.basis.cycles, graph.edge_count()).map_err(|e| e.to_string())?;
-    let k = solver
-        .wraps(&r.basis.cycles, &r.gamma(best))
-        .map_err(|e| e.to_string())?;
+    let k = r.wraps(best).map_err(|e| e.to_string())?;
     let est = OrientationEstimator::new(graph).map_err(|e| e.to_string())?;
     let theta = est.orientations(&k);
     let chi2 = est.cost(&theta, &k);
@@ -62,7 +58,7 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
     let estimate_s = est.as_ref().map_or(0.0, |e| e.seconds);
     if args.json {
         let second = match r.outcome {
-            SecondOutcome::TooMany(t) => json!({"too_many": t.found, "cap": t.cap}),
+            SecondOutcome::TooMany(t) => json!({"too_many": t.found, "cap": t.cap, "visited": t.visited}),
             _ => json!(r.second),
         };
         let v = json!({
@@ -122,9 +118,13 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
     );
     print_table(&r.first);
     match r.outcome {
-        SecondOutcome::TooMany(t) => println!(
+        SecondOutcome::TooMany(t) if t.found >= t.cap => println!(
             "second screening: too many hypotheses: {} ≥ cap {} (showing the bootstrapped answer)",
             t.found, t.cap
+        ),
+        SecondOutcome::TooMany(t) => println!(
+            "second screening: too many hypotheses: search budget of {} partial vectors exhausted with {} found (showing the bootstrapped answer)",
+            t.visited, t.found
         ),
         SecondOutcome::NoneInside => println!(
             "second screening: no candidate vector passes the joint test (inconsistent data); showing the bootstrapped answer"
