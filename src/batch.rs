@@ -9,11 +9,11 @@ use std::time::Instant;
 use crate::cycles::{BasisKind, CycleBasis};
 use crate::gamma::{Conditioner, GammaModel, Moments, SingularError};
 use crate::graph::PoseGraph;
-use crate::wraps::{WrapError, WrapSolver};
 use crate::screening::{
     self, ConfigError, Interval, JointGaussian, ScreeningConfig, TooMany, chi2_p_value,
     chi2_quantile,
 };
+use crate::wraps::{WrapError, WrapSolver};
 
 /// What to run.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]

@@ -381,7 +381,7 @@ impl Conditioner {
         self.solve(model, i);
         let m = self.moments_from_scratch(model, i);
         // Relative guard: a variance lost to cancellation is not a variance.
-        if !(m.var > model.variance(i) * 1e-12) {
+        if m.var.is_nan() || m.var <= model.variance(i) * 1e-12 {
             self.clear_scratch();
             return Err(SingularError {
                 cycle: i,

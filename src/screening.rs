@@ -86,12 +86,20 @@ impl ScreeningConfig {
     /// of the second screening gets the other α/2 ([`joint_level`](Self::joint_level)), so by
     /// the union bound the surviving set misses the true γ with probability ≤ α.
     pub fn level(&self, cycles: usize) -> f64 {
-        if self.family_wise { self.alpha / (2 * cycles.max(1)) as f64 } else { self.alpha }
+        if self.family_wise {
+            self.alpha / (2 * cycles.max(1)) as f64
+        } else {
+            self.alpha
+        }
     }
 
     /// Level of the joint (ellipsoid) test: α, or α/2 when family-wise.
     pub fn joint_level(&self) -> f64 {
-        if self.family_wise { self.alpha / 2.0 } else { self.alpha }
+        if self.family_wise {
+            self.alpha / 2.0
+        } else {
+            self.alpha
+        }
     }
 
     /// Interval half-width factor `q = sqrt(χ²_d⁻¹(1 − level))`.
@@ -202,7 +210,7 @@ pub fn ldl(q: &[f64], k: usize) -> Option<(Vec<f64>, Vec<f64>)> {
         for p in 0..j {
             dj -= l[j * k + p] * l[j * k + p] * d[p];
         }
-        if !(dj > 0.0) || !dj.is_finite() {
+        if !dj.is_finite() || dj <= 0.0 {
             return None;
         }
         d[j] = dj;
@@ -323,7 +331,8 @@ impl JointGaussian {
             if visits > budget {
                 return Err(TooMany {
                     found: out.len(),
-                    cap, visited: visits,
+                    cap,
+                    visited: visits,
                 });
             }
             e[lv] = cur[lv] as f64 - center[lv];
@@ -341,7 +350,8 @@ impl JointGaussian {
                 if out.len() >= cap {
                     return Err(TooMany {
                         found: out.len(),
-                        cap, visited: visits,
+                        cap,
+                        visited: visits,
                     });
                 }
                 cur[lv] += 1;
@@ -470,7 +480,14 @@ mod tests {
             }
         }
         let capped = jg.enumerate(&boxes, 30.0, 5);
-        assert!(matches!(capped, Err(TooMany { found: 5, cap: 5, .. })));
+        assert!(matches!(
+            capped,
+            Err(TooMany {
+                found: 5,
+                cap: 5,
+                ..
+            })
+        ));
     }
 
     #[test]

@@ -15,6 +15,9 @@
 
 use crate::graph::{PoseGraph, UnionFind};
 
+/// Steps `(node, edge to its parent)` up a tree.
+pub type TreePath = Vec<(usize, usize)>;
+
 /// A spanning forest with parent pointers and depths.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SpanningTree {
@@ -118,11 +121,7 @@ impl SpanningTree {
 
     /// Tree path from `a` up to the lowest common ancestor of `a` and `b`, and from `b` up to
     /// it: two lists of `(node, edge to its parent)` steps.
-    pub fn paths_to_lca(
-        &self,
-        mut a: usize,
-        mut b: usize,
-    ) -> (Vec<(usize, usize)>, Vec<(usize, usize)>) {
+    pub fn paths_to_lca(&self, mut a: usize, mut b: usize) -> (TreePath, TreePath) {
         let (mut up_a, mut up_b) = (Vec::new(), Vec::new());
         // A node deeper than another always has a parent.
         while self.depth[a] > self.depth[b] {

@@ -126,10 +126,26 @@ mod tests {
 
     #[test]
     fn non_triangular_basis_is_refused() {
-        let w = simulate(&SimConfig::new(100, 2)).unwrap();
-        let mut b = CycleBasis::build(&w.graph, BasisKind::Incremental);
-        b.cycles.swap(0, b.cycles.len() - 1);
-        let r = WrapSolver::new(&b.cycles, w.graph.edge_count());
-        assert!(matches!(r, Err(WrapError::NotTriangular { .. })) || b.cycles.len() < 2);
+        use crate::cycles::IncrementalBasis;
+        // Triangle 0→1→2 closed by 2→0 (cycle 0), then a parallel 0→2 whose cheapest path
+        // back is the chord 2→0 of cycle 0.
+        let mut inc = IncrementalBasis::new();
+        let mut cycles: Vec<_> = [(0, 1), (1, 2), (2, 0), (0, 2)]
+            .iter()
+            .filter_map(|&(a, b)| inc.add_edge(a, b, 1.0))
+            .collect();
+        assert_eq!(cycles.len(), 2);
+        assert!(cycles[1].terms.iter().any(|t| t.edge == 2));
+        assert!(WrapSolver::new(&cycles, 4).is_ok());
+        cycles.swap(0, 1);
+        assert!(matches!(
+            WrapSolver::new(&cycles, 4),
+            Err(WrapError::NotTriangular { cycle: 0, edge: 2 })
+        ));
+        let solver = WrapSolver::new(&cycles[1..], 4).unwrap();
+        assert!(matches!(
+            solver.wraps(&cycles[1..], &[1, 2]),
+            Err(WrapError::Length { got: 2, want: 1 })
+        ));
     }
 }

@@ -16,7 +16,10 @@ use std::f64::consts::TAU;
 const BASES: [BasisKind; 3] = [BasisKind::Odometric, BasisKind::Mst, BasisKind::Incremental];
 
 fn config(basis: BasisKind) -> BatchConfig {
-    BatchConfig { basis, screening: ScreeningConfig::default() }
+    BatchConfig {
+        basis,
+        screening: ScreeningConfig::default(),
+    }
 }
 
 /// Dense reference θ* = (Ā P⁻¹ Āᵀ)⁻¹ Ā P⁻¹ (δ − 2πk), anchor node 0.
@@ -98,12 +101,18 @@ fn marginal_variance_matches_dense_inverse() {
 
 #[test]
 fn gtsam_lago_toy_graph_orientations() {
-    let Some(path) = common::dataset("noisyToyGraph.txt") else { return };
+    let Some(path) = common::dataset("noisyToyGraph.txt") else {
+        return;
+    };
     let (g, _) = read_graph(&path, ReadOptions::default()).unwrap();
     let r = screen(&g, &config(BasisKind::Incremental)).unwrap();
     assert_eq!(r.hypotheses.len(), 1);
     let k = r.wraps(&r.hypotheses[0]).unwrap();
-    assert_ne!(k.iter().filter(|&&x| x != 0).count(), 0, "edge 2→0 needs a 2π correction");
+    assert_ne!(
+        k.iter().filter(|&&x| x != 0).count(),
+        0,
+        "edge 2→0 needs a 2π correction"
+    );
     let theta = OrientationEstimator::new(&g).unwrap().orientations(&k);
     for (got, want) in theta.iter().zip([0.0, 1.565449, 3.134143, 4.710123]) {
         assert!((got - want).abs() < 1e-4, "{got} vs {want}");
@@ -112,12 +121,21 @@ fn gtsam_lago_toy_graph_orientations() {
 
 #[test]
 fn m3500_paper_preset_reproduces_the_mcb_row() {
-    let Some(path) = common::dataset("M3500.g2o") else { return };
+    let Some(path) = common::dataset("M3500.g2o") else {
+        return;
+    };
     let (g, _) = read_graph(&path, ReadOptions::default()).unwrap();
-    let cfg = BatchConfig { basis: BasisKind::Incremental, screening: ScreeningConfig::paper() };
+    let cfg = BatchConfig {
+        basis: BasisKind::Incremental,
+        screening: ScreeningConfig::paper(),
+    };
     let r = screen(&g, &cfg).unwrap();
     assert_eq!(r.first.len(), 2, "{:?}", r.first);
-    assert!((r.first[0].determined_percent - 99.95).abs() < 0.005, "{:?}", r.first[0]);
+    assert!(
+        (r.first[0].determined_percent - 99.95).abs() < 0.005,
+        "{:?}",
+        r.first[0]
+    );
     assert_eq!(r.first[0].determined + r.first[1].determined, 1954);
     assert_eq!(r.hypotheses.len(), 1);
     assert!((r.basis.mean_length() - 6.8).abs() < 0.05);
@@ -135,10 +153,15 @@ fn paper_datasets_all_bases_finish() {
         ("M3500c.g2o", 2),
     ];
     for (name, want) in cases {
-        let Some(path) = common::dataset(name) else { return };
+        let Some(path) = common::dataset(name) else {
+            return;
+        };
         let (g, _) = read_graph(&path, ReadOptions::default()).unwrap();
         for basis in BASES {
-            let cfg = BatchConfig { basis, screening: ScreeningConfig::paper() };
+            let cfg = BatchConfig {
+                basis,
+                screening: ScreeningConfig::paper(),
+            };
             let r = screen(&g, &cfg).unwrap();
             let total: usize = r.first.iter().chain(&r.second).map(|i| i.determined).sum();
             assert_eq!(total, r.determined, "{name} {basis:?}");

@@ -76,4 +76,98 @@ fn demo_runs() {
     );
     let text = String::from_utf8(out.stdout).unwrap();
     assert!(text.contains("nodes") && text.contains("300"), "{text}");
+    assert!(
+        text.contains("batch screening") && text.contains("success probability"),
+        "{text}"
+    );
+}
+
+#[test]
+fn screen_json_has_the_documented_fields_and_writes_orientations() {
+    let g = scratch("screen.g2o");
+    let st = so2lin()
+        .args([
+            "simulate",
+            "--poses",
+            "400",
+            "--seed",
+            "3",
+            "--sigma-theta",
+            "0.1",
+            "--out",
+        ])
+        .arg(&g)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let orient = scratch("screen_orient.txt");
+    for basis in ["odometric", "mst", "incremental"] {
+        let out = so2lin()
+            .args(["screen", "--json", "--basis", basis, "--orientations"])
+            .arg(&orient)
+            .arg(&g)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        for key in [
+            "nodes",
+            "edges",
+            "cycles",
+            "basis",
+            "first_screening",
+            "second_screening",
+            "inconsistent_cycles",
+            "hypotheses",
+            "success_probability_lower_bound",
+            "seconds",
+        ] {
+            assert!(v.get(key).is_some(), "missing {key}");
+        }
+        assert_eq!(v["basis"]["kind"], basis);
+        for key in ["read", "basis", "screening", "estimate", "total"] {
+            assert!(v["seconds"][key].as_f64().unwrap() >= 0.0);
+        }
+        let it = &v["first_screening"][0];
+        for key in [
+            "iteration",
+            "determined_percent",
+            "density",
+            "log10_candidates",
+            "seconds",
+        ] {
+            assert!(it.get(key).is_some(), "first_screening lacks {key}");
+        }
+        let h = &v["hypotheses"][0];
+        assert!(h["chi2"].as_f64().unwrap() > 0.0 && h["p_value"].as_f64().is_some());
+        let lines = std::fs::read_to_string(&orient).unwrap();
+        assert_eq!(lines.lines().count(), 400);
+        assert!(
+            lines.starts_with("0 0.0\n"),
+            "anchor first: {}",
+            &lines[..20]
+        );
+    }
+    // Human output carries the table header; bad settings are a one-line error.
+    let out = so2lin()
+        .args(["screen", "--paper"])
+        .arg(&g)
+        .output()
+        .unwrap();
+    assert!(
+        String::from_utf8(out.stdout)
+            .unwrap()
+            .contains("determined %")
+    );
+    let out = so2lin()
+        .args(["screen", "--alpha", "1.5"])
+        .arg(&g)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8(out.stderr).unwrap().contains("alpha"));
 }

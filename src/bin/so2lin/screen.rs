@@ -58,7 +58,9 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
     let estimate_s = est.as_ref().map_or(0.0, |e| e.seconds);
     if args.json {
         let second = match r.outcome {
-            SecondOutcome::TooMany(t) => json!({"too_many": t.found, "cap": t.cap, "visited": t.visited}),
+            SecondOutcome::TooMany(t) => {
+                json!({"too_many": t.found, "cap": t.cap, "visited": t.visited})
+            }
             _ => json!(r.second),
         };
         let v = json!({

@@ -1,0 +1,107 @@
+//! The estimate does not depend on node labels, on 2π added to a measurement, or on the
+//! direction an edge is written in (swap its ends, invert its measurement).
+
+use proptest::prelude::*;
+use so2lin::batch::{BatchConfig, screen};
+use so2lin::cycles::BasisKind;
+use so2lin::estimate::OrientationEstimator;
+use so2lin::graph::{Edge, NodePolicy, Pose2, PoseGraph};
+use so2lin::sim::{SimConfig, simulate, wrap_angle};
+use std::f64::consts::TAU;
+
+fn best_orientations(g: &PoseGraph, basis: BasisKind) -> Vec<f64> {
+    let cfg = BatchConfig {
+        basis,
+        ..Default::default()
+    };
+    let r = screen(g, &cfg).unwrap();
+    let k = r.wraps(&r.hypotheses[0]).unwrap();
+    OrientationEstimator::new(g).unwrap().orientations(&k)
+}
+
+/// Rebuild a graph edge by edge, with nodes added in the same order.
+fn rebuild(
+    g: &PoseGraph,
+    relabel: impl Fn(u64) -> u64,
+    edit: impl Fn(usize, &Edge) -> Edge,
+) -> PoseGraph {
+    let mut out = PoseGraph::new();
+    for node in g.nodes() {
+        out.add_node(relabel(node.id), node.initial).unwrap();
+    }
+    for (k, e) in g.edges().iter().enumerate() {
+        let e = edit(k, e);
+        let e = Edge::new(
+            relabel(e.from()),
+            relabel(e.to()),
+            e.measurement(),
+            e.information(),
+        )
+        .unwrap();
+        out.add_edge(e, NodePolicy::RequireKnown).unwrap();
+    }
+    out
+}
+
+fn assert_same_wrapped(a: &[f64], b: &[f64]) -> Result<(), TestCaseError> {
+    prop_assert_eq!(a.len(), b.len());
+    for (x, y) in a.iter().zip(b) {
+        prop_assert!(wrap_angle(x - y).abs() < 1e-8, "{} vs {}", x, y);
+    }
+    Ok(())
+}
+
+fn world(poses: usize, seed: u64, sigma: f64) -> PoseGraph {
+    let mut c = SimConfig::new(poses, seed);
+    c.sigma_theta = sigma;
+    simulate(&c).unwrap().graph
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(48))]
+
+    #[test]
+    fn relabelling_nodes(poses in 20usize..150, seed in any::<u64>(), sigma in 0.01f64..0.15,
+                         mult in 1u64..1_000_000, offset in 0u64..1u64 << 40) {
+        let g = world(poses, seed, sigma);
+        let relabelled = rebuild(&g, |id| id * (2 * mult + 1) + offset, |_, e| *e);
+        for basis in [BasisKind::Incremental, BasisKind::Mst] {
+            assert_same_wrapped(&best_orientations(&g, basis), &best_orientations(&relabelled, basis))?;
+        }
+    }
+
+    #[test]
+    fn adding_two_pi_to_measurements(poses in 20usize..150, seed in any::<u64>(), sigma in 0.01f64..0.15,
+                                     pick in any::<prop::sample::Index>(), turns in -3i32..=3) {
+        let g = world(poses, seed, sigma);
+        let target = pick.index(g.edge_count());
+        let shifted = rebuild(&g, |id| id, |k, e| {
+            if k != target { return *e; }
+            let m = e.measurement();
+            let m = Pose2::new(m.x, m.y, m.theta + TAU * f64::from(turns));
+            Edge::new(e.from(), e.to(), m, e.information()).unwrap()
+        });
+        for basis in [BasisKind::Incremental, BasisKind::Odometric] {
+            assert_same_wrapped(&best_orientations(&g, basis), &best_orientations(&shifted, basis))?;
+        }
+    }
+
+    #[test]
+    fn reversing_an_edge(poses in 20usize..150, seed in any::<u64>(), sigma in 0.01f64..0.15,
+                         pick in any::<prop::sample::Index>()) {
+        let g = world(poses, seed, sigma);
+        let target = pick.index(g.edge_count());
+        let reversed = rebuild(&g, |id| id, |k, e| {
+            if k != target { return *e; }
+            // Inverse relative pose: θ' = −θ, t' = −R(−θ) t. Simulated information is
+            // isotropic in x, y, so it is unchanged by the rotation.
+            let m = e.measurement();
+            let (s, c) = m.theta.sin_cos();
+            let inv = Pose2::new(-(c * m.x + s * m.y), -(-s * m.x + c * m.y), -m.theta);
+            Edge::new(e.to(), e.from(), inv, e.information()).unwrap()
+        });
+        for basis in [BasisKind::Incremental, BasisKind::Mst, BasisKind::Odometric] {
+            assert_same_wrapped(&best_orientations(&g, basis), &best_orientations(&reversed, basis))?;
+        }
+    }
+}
