@@ -9,7 +9,7 @@ use std::time::Instant;
 use crate::cycles::{BasisKind, CycleBasis};
 use crate::gamma::{GammaModel, SingularError};
 use crate::graph::PoseGraph;
-use crate::screening::{ConfigError, Hypothesis, ScreeningConfig, Screened, Screener};
+use crate::screening::{ConfigError, Hypothesis, Screened, Screener, ScreeningConfig};
 use crate::wraps::{WrapError, WrapSolver};
 
 pub use crate::screening::{InconsistentCycle, Iteration, SecondOutcome};
@@ -25,7 +25,10 @@ pub struct BatchConfig {
 
 impl Default for BatchConfig {
     fn default() -> Self {
-        Self { basis: BasisKind::Incremental, screening: ScreeningConfig::default() }
+        Self {
+            basis: BasisKind::Incremental,
+            screening: ScreeningConfig::default(),
+        }
     }
 }
 
@@ -79,10 +82,16 @@ pub(crate) fn run_screening(
     model: &GammaModel,
     mut screener: Screener,
     cfg: &ScreeningConfig,
+    q: f64,
     cycles: &CycleBasis,
 ) -> Result<Screened, SingularError> {
-    let q = cfg.quantile(model.len());
-    let edges = |i: usize| cycles.cycles[i].terms.iter().map(|t| t.edge as usize).collect();
+    let edges = |i: usize| {
+        cycles.cycles[i]
+            .terms
+            .iter()
+            .map(|t| t.edge as usize)
+            .collect()
+    };
     screener.grow(model.len());
     let mut first = Vec::new();
     screener.first_screening(model, q, &edges, &mut first)?;
@@ -99,7 +108,8 @@ pub fn screen(graph: &PoseGraph, config: &BatchConfig) -> Result<BatchResult, Ba
     let sigma2: Vec<f64> = graph.edges().iter().map(|e| e.sigma2()).collect();
     let delta: Vec<f64> = graph.edges().iter().map(|e| e.delta()).collect();
     let model = GammaModel::from_cycles(&basis.cycles, &sigma2, &delta);
-    let screened = run_screening(&model, Screener::new(), &config.screening, &basis)?;
+    let q = config.screening.quantile(model.len());
+    let screened = run_screening(&model, Screener::new(), &config.screening, q, &basis)?;
     Ok(BatchResult {
         edges: graph.edge_count(),
         basis,

@@ -188,10 +188,12 @@ fn signed(edge: usize, along: bool) -> SignedEdge {
     }
 }
 
-/// Dijkstra queue entry, ordered so that `BinaryHeap` pops the smallest distance first
-/// (ties by node index, for determinism).
+/// Dijkstra queue entry `(distance, push sequence, node)`, ordered so that `BinaryHeap` pops
+/// the smallest distance first and, among equal distances, the earliest pushed. Ties never
+/// look at node indices, so the basis depends only on the edges and their order, not on how
+/// nodes are numbered.
 #[derive(Clone, Copy, Debug, PartialEq)]
-struct Entry(f64, u32);
+struct Entry(f64, u64, u32);
 impl Eq for Entry {}
 impl Ord for Entry {
     fn cmp(&self, other: &Self) -> Ordering {
@@ -298,8 +300,9 @@ impl IncrementalBasis {
         self.heap.clear();
         self.stamp[src] = g;
         self.dist[src] = 0.0;
-        self.heap.push(Entry(0.0, src as u32));
-        while let Some(Entry(d, v)) = self.heap.pop() {
+        let mut seq = 0u64;
+        self.heap.push(Entry(0.0, seq, src as u32));
+        while let Some(Entry(d, _, v)) = self.heap.pop() {
             let v = v as usize;
             if self.settled[v] == g {
                 continue;
@@ -315,7 +318,8 @@ impl IncrementalBasis {
                     self.stamp[w] = g;
                     self.dist[w] = nd;
                     self.pred[w] = (v as u32, e);
-                    self.heap.push(Entry(nd, w as u32));
+                    seq += 1;
+                    self.heap.push(Entry(nd, seq, w as u32));
                 }
             }
         }

@@ -15,7 +15,8 @@
 //! - [`screening`]: first (per-cycle) and second (joint) screening, success-rate bound;
 //! - [`wraps`]: from γ to the wraps k of every edge;
 //! - [`estimate`]: orientations θ* for a hypothesis (sparse Cholesky of the Laplacian);
-//! - [`batch`]: the paper's pipeline, driving the modules above.
+//! - [`batch`]: the paper's pipeline, driving the modules above;
+//! - [`online`]: the online estimator, driving the same modules one edge at a time.
 //!
 //! ```
 //! use so2lin::sim::{simulate, SimConfig};
@@ -33,6 +34,7 @@ pub mod estimate;
 pub mod gamma;
 pub mod graph;
 pub mod io;
+pub mod online;
 pub mod screening;
 pub mod sim;
 pub mod tree;

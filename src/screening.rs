@@ -475,7 +475,11 @@ impl Screener {
 
     /// Register cycles up to `model.len()` (undetermined, no candidates yet).
     pub fn grow(&mut self, cycles: usize) {
-        let blank = Interval { lo: 0, hi: 0, inconsistent: false };
+        let blank = Interval {
+            lo: 0,
+            hi: 0,
+            inconsistent: false,
+        };
         self.intervals.resize(cycles, blank);
         self.determined.resize(cycles, false);
         self.inconsistent.resize(cycles, None);
@@ -498,18 +502,30 @@ impl Screener {
 
     /// Undetermined cycles, ascending.
     pub fn undetermined(&self) -> Vec<usize> {
-        (0..self.determined.len()).filter(|&i| !self.determined[i]).collect()
+        (0..self.determined.len())
+            .filter(|&i| !self.determined[i])
+            .collect()
     }
 
     /// Density of `P_UU`.
     pub fn density(&self, model: &GammaModel) -> f64 {
         let u = self.cond.len();
-        if u == 0 { 0.0 } else { model.nnz_within(&self.determined) as f64 / (u * u) as f64 }
+        if u == 0 {
+            0.0
+        } else {
+            model.nnz_within(&self.determined) as f64 / (u * u) as f64
+        }
     }
 
     /// Test cycle i with its conditional moments at half-width factor q: store and return its
     /// candidates; an empty interval is recorded as inconsistent (edges from `edges`).
-    pub fn test(&mut self, i: usize, m: Moments, q: f64, edges: impl FnOnce() -> Vec<usize>) -> Interval {
+    pub fn test(
+        &mut self,
+        i: usize,
+        m: Moments,
+        q: f64,
+        edges: impl FnOnce() -> Vec<usize>,
+    ) -> Interval {
         let iv = Interval::new(m, q);
         self.intervals[i] = iv;
         if iv.inconsistent && self.inconsistent[i].is_none() {
@@ -520,15 +536,27 @@ impl Screener {
     }
 
     /// Determine cycle i with value v (appends to the conditioner). On error nothing changes.
-    pub fn determine(&mut self, model: &GammaModel, i: usize, v: i64) -> Result<Moments, SingularError> {
+    pub fn determine(
+        &mut self,
+        model: &GammaModel,
+        i: usize,
+        v: i64,
+    ) -> Result<Moments, SingularError> {
         let m = self.cond.determine(model, i, v)?;
         self.determined[i] = true;
-        self.intervals[i] = Interval { lo: v, hi: v, inconsistent: false };
+        self.intervals[i] = Interval {
+            lo: v,
+            hi: v,
+            inconsistent: false,
+        };
         Ok(m)
     }
 
     fn log10_product(&self) -> f64 {
-        self.intervals.iter().map(|iv| (iv.count() as f64).log10()).sum()
+        self.intervals
+            .iter()
+            .map(|iv| (iv.count() as f64).log10())
+            .sum()
     }
 
     /// First screening iterated to its fixed point (METHOD.md §3): every undetermined cycle is
@@ -590,8 +618,10 @@ impl Screener {
                 break (set, vec![(Vec::new(), 0.0)], SecondOutcome::Complete, None);
             }
             let (means, cov) = self.cond.joint(model, &set);
-            let jg = JointGaussian::new(&means, &cov)
-                .ok_or(SingularError { cycle: set[0], var: f64::NAN })?;
+            let jg = JointGaussian::new(&means, &cov).ok_or(SingularError {
+                cycle: set[0],
+                var: f64::NAN,
+            })?;
             let boxes: Vec<Interval> = set.iter().map(|&i| self.intervals[i]).collect();
             let r2 = chi2_quantile(set.len() as f64, 1.0 - cfg.joint_level());
             let found = match jg.enumerate(&boxes, r2, cfg.max_hypotheses) {
@@ -634,12 +664,21 @@ impl Screener {
             .into_iter()
             .map(|(values, form)| {
                 let chi2 = base + form;
-                Hypothesis { values, chi2, p_value: chi2_p_value(ell, chi2) }
+                Hypothesis {
+                    values,
+                    chi2,
+                    p_value: chi2_p_value(ell, chi2),
+                }
             })
             .collect();
-        hypotheses.sort_by(|a, b| a.chi2.total_cmp(&b.chi2).then_with(|| a.values.cmp(&b.values)));
-        let joint_sds: Vec<f64> =
-            joint.map(|j| j.d.iter().map(|d| d.sqrt()).collect()).unwrap_or_default();
+        hypotheses.sort_by(|a, b| {
+            a.chi2
+                .total_cmp(&b.chi2)
+                .then_with(|| a.values.cmp(&b.values))
+        });
+        let joint_sds: Vec<f64> = joint
+            .map(|j| j.d.iter().map(|d| d.sqrt()).collect())
+            .unwrap_or_default();
         let sds = self.cond.conditional_sds().iter().copied().chain(joint_sds);
         let determined_gamma = (0..ell).map(|i| self.cond.value(i).unwrap_or(0)).collect();
         let inconsistent = self
@@ -647,7 +686,11 @@ impl Screener {
             .iter()
             .enumerate()
             .filter_map(|(cycle, x)| {
-                x.as_ref().map(|(residual, edges)| InconsistentCycle { cycle, edges: edges.clone(), residual: *residual })
+                x.as_ref().map(|(residual, edges)| InconsistentCycle {
+                    cycle,
+                    edges: edges.clone(),
+                    residual: *residual,
+                })
             })
             .collect();
         Ok(Screened {
@@ -665,7 +708,11 @@ impl Screener {
 }
 
 fn percent(k: usize, n: usize) -> f64 {
-    if n == 0 { 100.0 } else { 100.0 * k as f64 / n as f64 }
+    if n == 0 {
+        100.0
+    } else {
+        100.0 * k as f64 / n as f64
+    }
 }
 
 #[cfg(test)]

@@ -10,11 +10,13 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
 mod screen;
+mod stream;
 
 use so2lin::batch::BatchConfig;
 use so2lin::cycles::BasisKind;
 use so2lin::graph::{GraphStats, PoseGraph};
 use so2lin::io::{self, InfoOrder, ReadOptions, ReadSummary};
+use so2lin::online::OnlineConfig;
 use so2lin::screening::ScreeningConfig;
 use so2lin::sim::{self, SimConfig};
 
@@ -112,6 +114,35 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Feed a file's edges in file order through the online estimator, timing each step.
+    Stream {
+        /// Graph file (g2o or TORO).
+        file: PathBuf,
+        /// Significance level α.
+        #[arg(long)]
+        alpha: Option<f64>,
+        /// Degrees of freedom of the per-cycle χ² quantile (default 1).
+        #[arg(long)]
+        dof: Option<u32>,
+        /// The paper's setting: α = 0.01, 3 degrees of freedom (explicit --alpha/--dof win).
+        #[arg(long)]
+        paper: bool,
+        /// Family-wise level for this many cycles (α/(2·N) per cycle).
+        #[arg(long, value_name = "N")]
+        family_wise: Option<usize>,
+        /// Cap on the hypotheses of the second screening.
+        #[arg(long, default_value_t = 1_000_000)]
+        max_hypotheses: usize,
+        /// Write `node_id theta` lines of the best hypothesis after finishing.
+        #[arg(long)]
+        orientations: Option<PathBuf>,
+        /// Information-matrix order of edge lines (default: detect).
+        #[arg(long, value_enum, default_value = "auto")]
+        order: OrderArg,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
     /// Simulate a world in memory and run the library on it (no files needed).
     Demo {
         /// Number of poses.
@@ -145,6 +176,38 @@ fn main() -> ExitCode {
             simulate(&c, &out)
         }
         Command::Demo { poses, seed } => demo(poses, seed),
+        Command::Stream {
+            file,
+            alpha,
+            dof,
+            paper,
+            family_wise,
+            max_hypotheses,
+            orientations,
+            order,
+            json,
+        } => {
+            let mut s = if paper {
+                ScreeningConfig::paper()
+            } else {
+                ScreeningConfig::default()
+            };
+            s.alpha = alpha.unwrap_or(s.alpha);
+            s.dof = dof.unwrap_or(s.dof);
+            s.family_wise = family_wise.is_some();
+            s.max_hypotheses = max_hypotheses;
+            let config = OnlineConfig {
+                screening: s,
+                expected_cycles: family_wise.unwrap_or(OnlineConfig::default().expected_cycles),
+            };
+            stream::run(stream::StreamArgs {
+                file: &file,
+                order: order.into(),
+                config,
+                orientations: orientations.as_deref(),
+                json,
+            })
+        }
         Command::Screen {
             file,
             basis,
@@ -188,7 +251,7 @@ fn main() -> ExitCode {
 }
 
 /// A byte-progress bar on a terminal, hidden otherwise.
-fn progress_bar(len: u64, what: &str) -> ProgressBar {
+pub(crate) fn progress_bar(len: u64, what: &str) -> ProgressBar {
     if !std::io::stderr().is_terminal() {
         return ProgressBar::hidden();
     }

@@ -185,7 +185,7 @@ fn print_table(rows: &[Iteration]) {
     }
 }
 
-fn write_orientations(path: &Path, graph: &PoseGraph, theta: &[f64]) -> Result<(), String> {
+pub fn write_orientations(path: &Path, graph: &PoseGraph, theta: &[f64]) -> Result<(), String> {
     let err = |e: std::io::Error| format!("{}: {e}", path.display());
     let mut w = std::io::BufWriter::new(std::fs::File::create(path).map_err(err)?);
     for (node, t) in graph.nodes().iter().zip(theta) {
