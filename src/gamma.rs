@@ -211,20 +211,6 @@ impl Moments {
     }
 }
 
-/// An undetermined cycle whose conditional moments are kept current incrementally
-/// ([`Conditioner::track`], [`Conditioner::advance`]).
-#[derive(Clone, Debug, PartialEq)]
-pub struct Tracked {
-    /// The cycle.
-    pub cycle: usize,
-    /// `y = L⁻¹ P_{U,i}`, sparse, by position.
-    y: Vec<(u32, f64)>,
-    /// Rows of L accounted for.
-    upto: usize,
-    /// Current conditional moments.
-    pub moments: Moments,
-}
-
 /// Conditioning failed: the conditional variance of a cycle is not positive, i.e. `P_UU` with
 /// that cycle added is numerically singular.
 #[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
@@ -431,74 +417,26 @@ impl Conditioner {
         Ok(m)
     }
 
-    /// Rebuild L in a fill-reducing order of the determined cycles (same values). The
-    /// conditional moments do not depend on the order, so every query answers as before (to
-    /// rounding); z, the factor and the sequential deviations are those of the new order.
-    /// On error nothing changes. Tracked cycles must be re-tracked afterwards.
-    pub fn reorder(&mut self, model: &GammaModel) -> Result<(), SingularError> {
+    /// Rebuild L in a fill-reducing order of the determined cycles (same values), with the
+    /// `recent` highest-numbered cycles ordered last (each part by approximate minimum
+    /// degree). The conditional moments do not depend on the order, so every query answers
+    /// as before (to rounding); z, the factor and the sequential deviations are those of the
+    /// new order. Keeping the newest cycles at the end of the elimination order keeps the
+    /// rows appended afterwards — new loops, mostly next to recent ones — short (the idea of
+    /// iSAM2's constrained ordering). On error nothing changes.
+    pub fn reorder(&mut self, model: &GammaModel, recent: usize) -> Result<(), SingularError> {
         let mut set: Vec<usize> = self.cycle_at.iter().map(|&c| c as usize).collect();
         set.sort_unstable();
+        let split = set.len().saturating_sub(recent);
+        let mut order = model.fill_reducing_order(&set[..split]);
+        order.extend(model.fill_reducing_order(&set[split..]));
         let mut fresh = Conditioner::new();
-        for i in model.fill_reducing_order(&set) {
+        for i in order {
             let v = self.value(i).unwrap_or(0);
             fresh.determine(model, i, v)?;
         }
         *self = fresh;
         Ok(())
-    }
-
-    /// Start tracking an undetermined cycle: solve `y_i = L⁻¹ P_{U,i}` once, then keep it
-    /// current with [`advance`](Self::advance) as cycles are determined.
-    pub fn track(&mut self, model: &GammaModel, i: usize) -> Tracked {
-        self.solve(model, i);
-        let moments = self.moments_from_scratch(model, i);
-        self.pattern.sort_unstable();
-        let y = self
-            .pattern
-            .iter()
-            .map(|&p| (p, self.y[p as usize]))
-            .collect();
-        self.clear_scratch();
-        Tracked {
-            cycle: i,
-            y,
-            upto: self.len(),
-            moments,
-        }
-    }
-
-    /// Bring a tracked cycle up to date with the rows appended since it was last advanced.
-    /// A new row q of L adds one entry to `y_i` (forward substitution does not revisit
-    /// earlier entries):
-    ///
-    /// ```text
-    /// y_i[q] = (P_{i,c_q} − L_{q,·} · y_i) / L_qq,   mean_i += y_i[q] z_q,   var_i −= y_i[q]²,
-    /// ```
-    ///
-    /// and `y_i[q] L_qq` is the covariance of γ_i and the newly determined γ_{c_q} given the
-    /// earlier determined set. Returns whether any new row shares information with the cycle
-    /// (changed its moments).
-    pub fn advance(&self, model: &GammaModel, t: &mut Tracked) -> bool {
-        let mut changed = false;
-        for q in t.upto..self.len() {
-            let c = self.cycle_at[q] as usize;
-            let mut dot = 0.0;
-            for &(p, yp) in &t.y {
-                let col = &self.cols[p as usize];
-                if let Ok(k) = col.binary_search_by_key(&(q as u32), |x| x.0) {
-                    dot += col[k].1 * yp;
-                }
-            }
-            let yq = (model.entry(t.cycle, c) - dot) / self.diag[q];
-            if yq != 0.0 {
-                t.y.push((q as u32, yq));
-                t.moments.mean += yq * self.z[q];
-                t.moments.var -= yq * yq;
-                changed = true;
-            }
-        }
-        t.upto = self.len();
-        changed
     }
 
     /// Conditional means and covariance of the undetermined cycles `set` (dense, row-major
@@ -626,31 +564,6 @@ mod tests {
         assert!((cond.chi2() - chi2_ref).abs() < 1e-9 * chi2_ref.max(1.0));
         assert_eq!(cond.value(det[0]), Some(-1));
         assert_eq!(cond.value(a[0]), None);
-    }
-
-    #[test]
-    fn tracked_moments_follow_fresh_solves() {
-        let (gm, _) = model(150, 8);
-        let mut cond = Conditioner::new();
-        let l = gm.len();
-        let mut tracked: Vec<Tracked> = (0..l)
-            .filter(|i| i % 3 == 0)
-            .map(|i| cond.track(&gm, i))
-            .collect();
-        let mut shared = 0;
-        for (k, i) in (0..l).filter(|i| i % 3 != 0).enumerate() {
-            cond.determine(&gm, i, (k % 2) as i64).unwrap();
-            for t in &mut tracked {
-                let before = t.moments;
-                let changed = cond.advance(&gm, t);
-                shared += usize::from(changed);
-                assert_eq!(changed, before != t.moments);
-                let fresh = cond.moments(&gm, t.cycle);
-                assert!((fresh.mean - t.moments.mean).abs() < 1e-10);
-                assert!((fresh.var - t.moments.var).abs() < 1e-12);
-            }
-        }
-        assert!(shared > 0);
     }
 
     #[test]

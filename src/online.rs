@@ -11,11 +11,13 @@
 //! y = L⁻¹ P_{U,new},   mean = μ_new + yᵀz,   var = P_new,new − ‖y‖²,   Γ = Z ∩ [mean ± q·sd].
 //! ```
 //!
-//! A single candidate determines the cycle (a row is appended to L, nothing is refactored).
-//! Ambiguous cycles keep their `y` current ([`crate::gamma::Tracked`]): a new row q changes
-//! an ambiguous cycle only when `y_i[q] ≠ 0`, i.e. when the new determination shares
-//! information with it; only those are re-screened, and a re-screen that leaves one candidate
-//! determines that cycle too (and so on). [`OnlineEstimator::finish`] runs the batch
+//! A single candidate determines the cycle (a row is appended to L). When a cycle is
+//! determined, the ambiguous cycles that share information with it directly — a nonzero
+//! `(P_γ)_ij`, i.e. a common edge — are re-screened with fresh conditional moments, and a
+//! re-screen that leaves one candidate determines that cycle too (and so on). Ambiguous cycles
+//! correlated only indirectly are left as they are until a neighbour is determined (their
+//! stored moments are then conditioned on fewer cycles: wider, never overconfident), which
+//! keeps a step's cost local; `finish` re-screens every one of them exactly. [`OnlineEstimator::finish`] runs the batch
 //! pipeline's fixed-point first screening and second screening on the current state — the
 //! same [`Screener`] code.
 //!
@@ -29,7 +31,9 @@ use serde::Serialize;
 use crate::batch::{self, BatchResult};
 use crate::cycles::{BasisKind, Cycle, CycleBasis, IncrementalBasis};
 use crate::estimate::{EstimateError, OrientationEstimator};
-use crate::gamma::{GammaModel, Tracked};
+use std::collections::{BTreeMap, VecDeque};
+
+use crate::gamma::{GammaModel, Moments};
 use crate::graph::{Edge, GraphError, Information, NodeId, NodePolicy, Pose2, PoseGraph};
 use crate::screening::{
     ConfigError, Hypothesis, Interval, Screener, ScreeningConfig, rounding_success,
@@ -205,8 +209,8 @@ pub struct OnlineEstimator {
     cycles: Vec<Cycle>,
     model: GammaModel,
     screener: Screener,
-    /// Ambiguous cycles, ascending, with their moments kept current.
-    tracked: Vec<Tracked>,
+    /// Ambiguous cycles with their conditional moments at their last screening.
+    ambiguous: BTreeMap<usize, Moments>,
     counters: Counters,
     theta: Vec<f64>,
     theta_valid: bool,
@@ -218,7 +222,7 @@ pub struct OnlineEstimator {
 /// Below this many determined cycles L is never reordered (chronological fill is cheap).
 const REORDER_MIN_ROWS: usize = 256;
 /// Reorder when L's nonzeros per row exceed this multiple of the last reordered factor's.
-const REORDER_FILL_RATIO: f64 = 2.0;
+const REORDER_FILL_RATIO: f64 = 1.5;
 
 impl OnlineEstimator {
     /// A new estimator with no nodes.
@@ -235,7 +239,7 @@ impl OnlineEstimator {
             cycles: Vec::new(),
             model: GammaModel::new(),
             screener: Screener::new(),
-            tracked: Vec::new(),
+            ambiguous: BTreeMap::new(),
             counters: Counters::default(),
             theta: Vec::new(),
             theta_valid: true,
@@ -305,8 +309,7 @@ impl OnlineEstimator {
         let t = self.model.push_cycle(&cycle, &self.sigma2, &self.delta);
         self.cycles.push(cycle);
         self.screener.grow(t + 1);
-        let tracked = self.screener.cond.track(&self.model, t);
-        let m = tracked.moments;
+        let m = self.screener.cond.moments(&self.model, t);
         let cycles = &self.cycles;
         let iv = self.screener.test(t, m, self.q, || edges_of(&cycles[t]));
         let mut rescreened = Vec::new();
@@ -315,10 +318,10 @@ impl OnlineEstimator {
             None => false,
         };
         if determined {
-            self.propagate(&mut rescreened);
+            self.propagate(t, &mut rescreened);
             self.maybe_reorder();
         } else {
-            self.tracked.push(tracked);
+            self.ambiguous.insert(t, m);
         }
         self.refresh_counters();
         Ok(Step {
@@ -334,61 +337,56 @@ impl OnlineEstimator {
         })
     }
 
-    /// After a determination: bring every ambiguous cycle up to date, re-screen those that
-    /// share information with the new rows, determine any left with one candidate, repeat.
-    fn propagate(&mut self, out: &mut Vec<Rescreen>) {
-        loop {
-            let mut next = None;
-            for k in 0..self.tracked.len() {
-                let tr = &mut self.tracked[k];
-                if !self.screener.cond.advance(&self.model, tr) {
-                    continue;
-                }
-                let i = tr.cycle;
-                let m = tr.moments;
+    /// After cycle `first` is determined: re-screen the ambiguous cycles sharing an edge with
+    /// it (fresh moments), determine those left with one candidate, and continue from them.
+    fn propagate(&mut self, first: usize, out: &mut Vec<Rescreen>) {
+        let mut queue = VecDeque::from([first]);
+        while let Some(c) = queue.pop_front() {
+            let neighbours: Vec<usize> = self
+                .model
+                .row(c)
+                .iter()
+                .map(|&(j, _)| j as usize)
+                .filter(|j| self.ambiguous.contains_key(j))
+                .collect();
+            for i in neighbours {
+                let m = self.screener.cond.moments(&self.model, i);
                 let before = self.screener.interval(i);
                 let cycles = &self.cycles;
                 let after = self.screener.test(i, m, self.q, || edges_of(&cycles[i]));
                 self.counters.rescreens += 1;
-                let r = Rescreen {
-                    cycle: i,
-                    before,
-                    after,
-                    decision: Decision::of(after, false),
-                    changed: before != after,
+                self.ambiguous.insert(i, m);
+                let determined = match after.single() {
+                    Some(v) => self.screener.determine(&self.model, i, v).is_ok(),
+                    None => false,
                 };
+                if determined {
+                    self.ambiguous.remove(&i);
+                    queue.push_back(i);
+                }
+                let decision = Decision::of(after, determined);
                 match out.iter_mut().find(|x| x.cycle == i) {
                     Some(x) => {
                         x.after = after;
-                        x.decision = r.decision;
-                        x.changed = x.before != after;
+                        x.decision = decision;
+                        x.changed = x.before != after || determined;
                     }
-                    None => out.push(r),
+                    None => out.push(Rescreen {
+                        cycle: i,
+                        before,
+                        after,
+                        decision,
+                        changed: before != after || determined,
+                    }),
                 }
-                if next.is_none() && after.single().is_some() {
-                    next = Some(k);
-                }
-            }
-            let Some(k) = next else { break };
-            let i = self.tracked[k].cycle;
-            let v = self.screener.interval(i).lo;
-            if self.screener.determine(&self.model, i, v).is_err() {
-                // Numerically singular: leave it ambiguous (cannot happen for an SPD P_γ).
-                break;
-            }
-            self.tracked.remove(k);
-            if let Some(x) = out.iter_mut().find(|x| x.cycle == i) {
-                x.decision = Decision::Determined;
-                x.changed = true;
             }
         }
         out.sort_by_key(|x| x.cycle);
     }
 
     /// Rebuild the factor of P_UU in a fill-reducing order when appending in chronological
-    /// order has made it much denser than a reordered one would be (amortised: the factor must
-    /// double its fill per row first). Conditional moments are unchanged; tracked cycles are
-    /// re-solved against the new factor.
+    /// order has made it much denser than a reordered one would be (amortised: its fill per row must
+    /// grow by half first). Conditional moments are unchanged.
     fn maybe_reorder(&mut self) {
         let rows = self.screener.cond.len();
         if rows < REORDER_MIN_ROWS {
@@ -403,14 +401,11 @@ impl OnlineEstimator {
         if per_row <= REORDER_FILL_RATIO * base.max(1.0) {
             return;
         }
-        if self.screener.cond.reorder(&self.model).is_err() {
+        if self.screener.cond.reorder(&self.model, 0).is_err() {
             return;
         }
         self.fill_after_reorder = self.screener.cond.factor_nnz() as f64 / rows as f64;
         self.counters.reorders += 1;
-        for t in &mut self.tracked {
-            *t = self.screener.cond.track(&self.model, t.cycle);
-        }
     }
 
     /// Extend the cached estimate after a tree edge: exact O(1) for a new leaf.
@@ -433,7 +428,7 @@ impl OnlineEstimator {
 
     fn refresh_counters(&mut self) {
         self.counters.determined = self.screener.cond.len();
-        self.counters.ambiguous = self.tracked.len();
+        self.counters.ambiguous = self.ambiguous.len();
         self.counters.inconsistent = self.screener.inconsistent_count();
     }
 
@@ -454,7 +449,7 @@ impl OnlineEstimator {
 
     /// Ids of the ambiguous cycles, ascending.
     pub fn ambiguous(&self) -> Vec<usize> {
-        self.tracked.iter().map(|t| t.cycle).collect()
+        self.ambiguous.keys().copied().collect()
     }
 
     /// Current best γ: determined values, and the rounded conditional mean (clamped to the
@@ -463,9 +458,9 @@ impl OnlineEstimator {
         let mut g: Vec<i64> = (0..self.model.len())
             .map(|i| self.screener.cond.value(i).unwrap_or(0))
             .collect();
-        for t in &self.tracked {
-            let iv = self.screener.interval(t.cycle);
-            g[t.cycle] = (t.moments.mean.round() as i64).clamp(iv.lo, iv.hi);
+        for (&i, m) in &self.ambiguous {
+            let iv = self.screener.interval(i);
+            g[i] = (m.mean.round() as i64).clamp(iv.lo, iv.hi);
         }
         g
     }
@@ -520,7 +515,7 @@ impl OnlineEstimator {
     /// stays a lower bound).
     pub fn success_probability_lower_bound(&self) -> f64 {
         let sds = self.screener.cond.conditional_sds().iter().copied();
-        let amb = self.tracked.iter().map(|t| t.moments.sd());
+        let amb = self.ambiguous.values().map(Moments::sd);
         sds.chain(amb)
             .map(|s| rounding_success(s).ln())
             .sum::<f64>()

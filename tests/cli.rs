@@ -171,3 +171,84 @@ fn screen_json_has_the_documented_fields_and_writes_orientations() {
     assert!(!out.status.success());
     assert!(String::from_utf8(out.stderr).unwrap().contains("alpha"));
 }
+
+#[test]
+fn stream_json_reports_latency_and_matches_screen() {
+    let g = scratch("stream.g2o");
+    let st = so2lin()
+        .args(["simulate", "--poses", "600", "--seed", "8", "--out"])
+        .arg(&g)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let (so, bo) = (scratch("stream_orient.txt"), scratch("screen_orient2.txt"));
+    let out = so2lin()
+        .args(["stream", "--json", "--orientations"])
+        .arg(&so)
+        .arg(&g)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    for key in [
+        "steps",
+        "cycles",
+        "determined",
+        "ambiguous",
+        "inconsistent",
+        "total_seconds",
+        "peak_rss_bytes",
+        "hypotheses",
+    ] {
+        assert!(v.get(key).is_some(), "missing {key}");
+    }
+    for class in ["all", "tree", "cycle"] {
+        for stat in ["p50", "p90", "p99", "max", "mean"] {
+            assert!(
+                v["latency_us"][class][stat].as_f64().unwrap() >= 0.0,
+                "{class}.{stat}"
+            );
+        }
+    }
+    let l = &v["latency_us"]["all"];
+    assert!(l["p50"].as_f64() <= l["p99"].as_f64() && l["p99"].as_f64() <= l["max"].as_f64());
+    assert!(v["peak_rss_bytes"].as_u64().unwrap() > 0);
+    assert_eq!(
+        v["steps"].as_u64().unwrap(),
+        v["cycles"].as_u64().unwrap() + 599
+    );
+    // Same orientations as the batch pipeline (the simulated file lists nodes 0.. in order).
+    let out = so2lin()
+        .args(["screen", "--orientations"])
+        .arg(&bo)
+        .arg(&g)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let parse = |p: &PathBuf| -> Vec<(u64, f64)> {
+        std::fs::read_to_string(p)
+            .unwrap()
+            .lines()
+            .map(|l| {
+                let mut f = l.split_whitespace();
+                (
+                    f.next().unwrap().parse().unwrap(),
+                    f.next().unwrap().parse().unwrap(),
+                )
+            })
+            .collect()
+    };
+    let (a, b) = (parse(&so), parse(&bo));
+    assert_eq!(a.len(), 600);
+    for ((ia, ta), (ib, tb)) in a.iter().zip(&b) {
+        assert_eq!(ia, ib);
+        assert!((ta - tb).abs() < 1e-9);
+    }
+    let out = so2lin().arg("stream").arg(&g).output().unwrap();
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(text.contains("p99") && text.contains("cycle"), "{text}");
+}

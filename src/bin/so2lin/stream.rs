@@ -115,6 +115,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "ambiguous": c.ambiguous,
             "inconsistent": c.inconsistent,
             "rescreens": c.rescreens,
+            "reorders": c.reorders,
             "latency_us": latency,
             "stream_seconds": stream_s,
             "finish_seconds": finish_s,
@@ -143,8 +144,8 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         );
     }
     println!(
-        "online: {} determined, {} ambiguous, {} inconsistent, {} re-screens",
-        c.determined, c.ambiguous, c.inconsistent, c.rescreens
+        "online: {} determined, {} ambiguous, {} inconsistent, {} re-screens, {} factor reorders",
+        c.determined, c.ambiguous, c.inconsistent, c.rescreens, c.reorders
     );
     println!(
         "finish: {} determined, {} ambiguous, {} hypotheses ({:?})",

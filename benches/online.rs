@@ -1,0 +1,158 @@
+//! Online estimator latency (`cargo bench --bench online`).
+//!
+//! - `stream/<input>`: every edge of a file through `add_edge`, in file order (M3500 and
+//!   city10000 when the datasets are present, simulated worlds always).
+//! - `step/sim<N>/{odometry,loop_closure}`: one more step on a simulated world of N poses
+//!   already streamed: an odometry step to a new pose, or a loop closure re-observing the
+//!   latest odometry edge (a local loop). The state keeps growing across iterations, as on a
+//!   robot.
+//! - `query/M3500/orientations_after_loop_closure`: M3500's last loop closure (determined)
+//!   followed by `orientations()` (one sparse factorisation and solve);
+//!   `query/M3500/heading_after_odometry`: an odometry step followed by
+//!   `orientation(latest)` (cached, extended in O(1)).
+
+use std::hint::black_box;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use criterion::{BatchSize, Criterion, criterion_group, criterion_main};
+use so2lin::graph::{Edge, Pose2};
+use so2lin::io::{InfoOrder, Reader};
+use so2lin::online::{OnlineConfig, OnlineEstimator};
+use so2lin::sim::{SimConfig, simulate};
+
+fn dataset(name: &str) -> Option<Vec<Edge>> {
+    let dir = std::env::var_os("SO2LIN_DATASETS")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/datasets"));
+    let mut reader = Reader::open(dir.join(name), InfoOrder::Auto).ok()?;
+    reader.edges().collect::<Result<Vec<_>, _>>().ok()
+}
+
+fn simulated(poses: usize) -> Vec<Edge> {
+    simulate(&SimConfig::new(poses, 1))
+        .expect("valid config")
+        .graph
+        .edges()
+        .to_vec()
+}
+
+fn streamed(edges: &[Edge]) -> OnlineEstimator {
+    let mut est = OnlineEstimator::new(OnlineConfig::default()).expect("valid config");
+    for e in edges {
+        est.add_edge(*e).expect("valid edge");
+    }
+    est
+}
+
+fn bench_stream(c: &mut Criterion) {
+    let mut inputs = vec![
+        ("sim1000".to_owned(), simulated(1000)),
+        ("sim10000".to_owned(), simulated(10_000)),
+    ];
+    for name in ["M3500.g2o", "city10000.g2o"] {
+        if let Some(edges) = dataset(name) {
+            inputs.push((name.trim_end_matches(".g2o").to_owned(), edges));
+        }
+    }
+    let mut group = c.benchmark_group("stream");
+    group.sample_size(10);
+    for (name, edges) in &inputs {
+        group.bench_function(name.as_str(), |b| {
+            b.iter(|| streamed(black_box(edges)).counters())
+        });
+    }
+    group.finish();
+}
+
+/// Time `iters` steps made by `step` on a growing estimator.
+fn grow(
+    est: &mut OnlineEstimator,
+    iters: u64,
+    mut step: impl FnMut(&mut OnlineEstimator),
+) -> Duration {
+    let start = Instant::now();
+    for _ in 0..iters {
+        step(est);
+    }
+    start.elapsed()
+}
+
+fn bench_steps(c: &mut Criterion) {
+    let mut group = c.benchmark_group("step");
+    group.sample_size(20);
+    for poses in [1_000usize, 10_000, 100_000] {
+        let edges = simulated(poses);
+        let mut est = streamed(&edges);
+        let mut next = poses as u64;
+        let z = Pose2::new(1.0, 0.0, 0.01);
+        group.bench_function(format!("sim{poses}/odometry"), |b| {
+            b.iter_custom(|iters| {
+                grow(&mut est, iters, |e| {
+                    let edge = Edge::with_sigmas(next - 1, next, z, 0.05, 0.05).expect("valid");
+                    e.add_edge(edge).expect("accepted");
+                    next += 1;
+                })
+            })
+        });
+        group.bench_function(format!("sim{poses}/loop_closure"), |b| {
+            b.iter_custom(|iters| {
+                grow(&mut est, iters, |e| {
+                    // Odometry to a new pose, then (timed together) a loop closure to the pose
+                    // before: a new local cycle of two edges.
+                    let edge = Edge::with_sigmas(next - 1, next, z, 0.05, 0.05).expect("valid");
+                    e.add_edge(edge).expect("accepted");
+                    let lc = Edge::with_sigmas(next - 1, next, z, 0.05, 0.05).expect("valid");
+                    e.add_edge(lc).expect("accepted");
+                    next += 1;
+                })
+            })
+        });
+    }
+    group.finish();
+}
+
+fn bench_queries(c: &mut Criterion) {
+    let edges = dataset("M3500.g2o").unwrap_or_else(|| simulated(3500));
+    // The stream up to (not including) its last loop closure, and that loop closure.
+    let Some(cut) = edges.iter().rposition(|e| !e.is_odometric()) else {
+        return;
+    };
+    let (prefix, closure) = (&edges[..cut], edges[cut]);
+    let mut group = c.benchmark_group("query/M3500");
+    group.sample_size(20);
+    group.bench_function("orientations_after_loop_closure", |b| {
+        b.iter_batched(
+            || {
+                let mut est = streamed(prefix);
+                est.orientations().expect("solves");
+                est
+            },
+            |mut est| {
+                est.add_edge(closure).expect("accepted");
+                est.orientations().map(|t| t.len()).expect("solves")
+            },
+            BatchSize::PerIteration,
+        )
+    });
+    let mut est = streamed(&edges);
+    est.orientations().expect("solves");
+    let mut prev = edges
+        .iter()
+        .map(|e| e.from().max(e.to()))
+        .max()
+        .unwrap_or(0);
+    let z = Pose2::new(1.0, 0.0, 0.0);
+    group.bench_function("heading_after_odometry", |b| {
+        b.iter(|| {
+            let odo = Edge::with_sigmas(prev, prev + 1, z, 0.05, 0.05).expect("valid");
+            est.add_edge(odo).expect("accepted");
+            prev += 1;
+            est.orientation(prev).expect("cached")
+        })
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench_stream, bench_steps, bench_queries);
+criterion_main!(benches);
