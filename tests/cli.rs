@@ -13,6 +13,20 @@ fn scratch(name: &str) -> PathBuf {
     dir.join(name)
 }
 
+/// Run `so2lin simulate` with `args` into the scratch file `name`; returns its path.
+fn simulated(name: &str, args: &[&str]) -> PathBuf {
+    let out = scratch(name);
+    let st = so2lin()
+        .arg("simulate")
+        .args(args)
+        .arg("--out")
+        .arg(&out)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    out
+}
+
 #[test]
 fn simulate_same_seed_is_byte_identical() {
     let (a, b) = (scratch("a.g2o"), scratch("b.g2o"));
@@ -84,22 +98,10 @@ fn demo_runs() {
 
 #[test]
 fn screen_json_has_the_documented_fields_and_writes_orientations() {
-    let g = scratch("screen.g2o");
-    let st = so2lin()
-        .args([
-            "simulate",
-            "--poses",
-            "400",
-            "--seed",
-            "3",
-            "--sigma-theta",
-            "0.1",
-            "--out",
-        ])
-        .arg(&g)
-        .status()
-        .unwrap();
-    assert!(st.success());
+    let g = simulated(
+        "screen.g2o",
+        &["--poses", "400", "--seed", "3", "--sigma-theta", "0.1"],
+    );
     let orient = scratch("screen_orient.txt");
     for basis in ["odometric", "mst", "incremental"] {
         let out = so2lin()
@@ -174,13 +176,7 @@ fn screen_json_has_the_documented_fields_and_writes_orientations() {
 
 #[test]
 fn stream_json_reports_latency_and_matches_screen() {
-    let g = scratch("stream.g2o");
-    let st = so2lin()
-        .args(["simulate", "--poses", "600", "--seed", "8", "--out"])
-        .arg(&g)
-        .status()
-        .unwrap();
-    assert!(st.success());
+    let g = simulated("stream.g2o", &["--poses", "600", "--seed", "8"]);
     let (so, bo) = (scratch("stream_orient.txt"), scratch("screen_orient2.txt"));
     let out = so2lin()
         .args(["stream", "--json", "--orientations"])

@@ -48,6 +48,39 @@ impl From<OrderArg> for InfoOrder {
     }
 }
 
+/// Screening options shared by `screen` and `stream`.
+#[derive(clap::Args)]
+struct ScreeningArgs {
+    /// Significance level α.
+    #[arg(long)]
+    alpha: Option<f64>,
+    /// Degrees of freedom of the per-cycle χ² quantile (default 1).
+    #[arg(long)]
+    dof: Option<u32>,
+    /// The paper's setting: α = 0.01, 3 degrees of freedom (explicit --alpha/--dof win).
+    #[arg(long)]
+    paper: bool,
+    /// Cap on the hypotheses of the second screening.
+    #[arg(long, default_value_t = 1_000_000)]
+    max_hypotheses: usize,
+}
+
+impl ScreeningArgs {
+    fn config(&self, family_wise: bool) -> ScreeningConfig {
+        let base = if self.paper {
+            ScreeningConfig::paper()
+        } else {
+            ScreeningConfig::default()
+        };
+        ScreeningConfig {
+            alpha: self.alpha.unwrap_or(base.alpha),
+            dof: self.dof.unwrap_or(base.dof),
+            family_wise,
+            max_hypotheses: self.max_hypotheses,
+        }
+    }
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Counts and noise statistics of a g2o / TORO graph file.
@@ -89,21 +122,11 @@ enum Command {
         /// Cycle basis.
         #[arg(long, value_enum, default_value = "incremental")]
         basis: BasisKind,
-        /// Significance level α.
-        #[arg(long)]
-        alpha: Option<f64>,
-        /// Degrees of freedom of the per-cycle χ² quantile (default 1).
-        #[arg(long)]
-        dof: Option<u32>,
-        /// The paper's setting: α = 0.01, 3 degrees of freedom (explicit --alpha/--dof win).
-        #[arg(long)]
-        paper: bool,
+        #[command(flatten)]
+        screening: ScreeningArgs,
         /// Family-wise level: per-cycle α/ℓ (Bonferroni).
         #[arg(long)]
         family_wise: bool,
-        /// Cap on the hypotheses of the second screening.
-        #[arg(long, default_value_t = 1_000_000)]
-        max_hypotheses: usize,
         /// Write `node_id theta` lines of the best hypothesis (radians, unwrapped, anchor 0).
         #[arg(long)]
         orientations: Option<PathBuf>,
@@ -118,21 +141,11 @@ enum Command {
     Stream {
         /// Graph file (g2o or TORO).
         file: PathBuf,
-        /// Significance level α.
-        #[arg(long)]
-        alpha: Option<f64>,
-        /// Degrees of freedom of the per-cycle χ² quantile (default 1).
-        #[arg(long)]
-        dof: Option<u32>,
-        /// The paper's setting: α = 0.01, 3 degrees of freedom (explicit --alpha/--dof win).
-        #[arg(long)]
-        paper: bool,
+        #[command(flatten)]
+        screening: ScreeningArgs,
         /// Family-wise level for this many cycles (α/(2·N) per cycle).
         #[arg(long, value_name = "N")]
         family_wise: Option<usize>,
-        /// Cap on the hypotheses of the second screening.
-        #[arg(long, default_value_t = 1_000_000)]
-        max_hypotheses: usize,
         /// Write `node_id theta` lines of the best hypothesis after finishing.
         #[arg(long)]
         orientations: Option<PathBuf>,
@@ -178,26 +191,14 @@ fn main() -> ExitCode {
         Command::Demo { poses, seed } => demo(poses, seed),
         Command::Stream {
             file,
-            alpha,
-            dof,
-            paper,
+            screening,
             family_wise,
-            max_hypotheses,
             orientations,
             order,
             json,
         } => {
-            let mut s = if paper {
-                ScreeningConfig::paper()
-            } else {
-                ScreeningConfig::default()
-            };
-            s.alpha = alpha.unwrap_or(s.alpha);
-            s.dof = dof.unwrap_or(s.dof);
-            s.family_wise = family_wise.is_some();
-            s.max_hypotheses = max_hypotheses;
             let config = OnlineConfig {
-                screening: s,
+                screening: screening.config(family_wise.is_some()),
                 expected_cycles: family_wise.unwrap_or(OnlineConfig::default().expected_cycles),
             };
             stream::run(stream::StreamArgs {
@@ -211,24 +212,13 @@ fn main() -> ExitCode {
         Command::Screen {
             file,
             basis,
-            alpha,
-            dof,
-            paper,
+            screening,
             family_wise,
-            max_hypotheses,
             orientations,
             order,
             json,
         } => {
-            let mut s = if paper {
-                ScreeningConfig::paper()
-            } else {
-                ScreeningConfig::default()
-            };
-            s.alpha = alpha.unwrap_or(s.alpha);
-            s.dof = dof.unwrap_or(s.dof);
-            s.family_wise = family_wise;
-            s.max_hypotheses = max_hypotheses;
+            let s = screening.config(family_wise);
             screen::run(screen::ScreenArgs {
                 file: &file,
                 order: order.into(),
