@@ -248,3 +248,25 @@ fn stream_json_reports_latency_and_matches_screen() {
     let text = String::from_utf8(out.stdout).unwrap();
     assert!(text.contains("p99") && text.contains("cycle"), "{text}");
 }
+
+#[test]
+fn screen_reports_one_anchor_per_component() {
+    let f = scratch("forest.g2o");
+    std::fs::write(
+        &f,
+        "EDGE_SE2 0 1 1 0 0.5 1 0 0 1 0 100\nEDGE_SE2 1 2 1 0 0.5 1 0 0 1 0 100\n\
+         EDGE_SE2 2 0 1 0 -1.0 1 0 0 1 0 100\nEDGE_SE2 10 11 1 0 0.2 1 0 0 1 0 100\n\
+         EDGE_SE2 11 10 1 0 -0.2 1 0 0 1 0 100\n",
+    )
+    .unwrap();
+    let out = so2lin()
+        .args(["screen", "--json"])
+        .arg(&f)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["anchors"], serde_json::json!([0, 10]));
+    assert_eq!(v["cycles"], 2);
+    assert_eq!(v["hypotheses"].as_array().unwrap().len(), 1);
+}

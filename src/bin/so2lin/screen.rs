@@ -23,6 +23,8 @@ pub struct ScreenArgs<'a> {
 /// The best hypothesis' orientations and the time it took.
 pub struct Estimate {
     pub theta: Vec<f64>,
+    /// Node ids of the anchors (θ = 0), one per connected component.
+    pub anchors: Vec<u64>,
     pub chi2: f64,
     pub seconds: f64,
 }
@@ -37,8 +39,10 @@ pub fn estimate_best(graph: &PoseGraph, r: &BatchResult) -> Result<Option<Estima
     let est = OrientationEstimator::new(graph).map_err(|e| e.to_string())?;
     let theta = est.orientations(&k);
     let chi2 = est.cost(&theta, &k);
+    let anchors = est.anchors().iter().map(|&v| graph.nodes()[v].id).collect();
     Ok(Some(Estimate {
         theta,
+        anchors,
         chi2,
         seconds: t.elapsed().as_secs_f64(),
     }))
@@ -68,6 +72,7 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
             "nodes": graph.node_count(),
             "edges": graph.edge_count(),
             "cycles": r.model.len(),
+            "anchors": est.as_ref().map(|e| &e.anchors),
             "config": args.config,
             "basis": {
                 "kind": r.basis.kind,
@@ -99,6 +104,15 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
         graph.edge_count(),
         r.model.len()
     );
+    if let Some(e) = est.as_ref().filter(|e| e.anchors.len() > 1) {
+        let shown: Vec<u64> = e.anchors.iter().take(10).copied().collect();
+        println!(
+            "{} connected components: each anchored (θ = 0) at its first node: {:?}{}",
+            e.anchors.len(),
+            shown,
+            if e.anchors.len() > 10 { " …" } else { "" }
+        );
+    }
     println!(
         "basis {:?}: weight {:.4}, mean cycle length {:.1}, max {}, {:.4} s",
         r.basis.kind,
