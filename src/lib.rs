@@ -16,7 +16,8 @@
 //! - [`wraps`]: from γ to the wraps k of every edge;
 //! - [`estimate`]: orientations θ* for a hypothesis (sparse Cholesky of the Laplacian);
 //! - [`batch`]: the paper's pipeline, driving the modules above;
-//! - [`online`]: the online estimator, driving the same modules one edge at a time.
+//! - [`online`]: the online estimator, driving the same modules one edge at a time;
+//! - [`log`]: MCAP recording and bit-exact replay of online runs.
 //!
 //! ```
 //! use so2lin::sim::{simulate, SimConfig};
@@ -34,6 +35,7 @@ pub mod estimate;
 pub mod gamma;
 pub mod graph;
 pub mod io;
+pub mod log;
 pub mod online;
 pub mod screening;
 pub mod sim;

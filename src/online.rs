@@ -217,6 +217,8 @@ pub struct OnlineEstimator {
     solver: Option<OrientationEstimator>,
     /// Nonzeros per row of L right after the last reordering.
     fill_after_reorder: f64,
+    /// MCAP recorder, when attached.
+    recorder: Option<Box<crate::log::Recorder>>,
 }
 
 /// Below this many determined cycles L is never reordered (chronological fill is cheap).
@@ -245,6 +247,7 @@ impl OnlineEstimator {
             theta_valid: true,
             solver: None,
             fill_after_reorder: f64::INFINITY,
+            recorder: None,
         })
     }
 
@@ -276,9 +279,35 @@ impl OnlineEstimator {
         self.add_edge(Edge::new(from, to, z, info)?)
     }
 
+    /// Record every following step to an MCAP log ([`crate::log`]). Without a recorder
+    /// `add_edge` does no recording work at all.
+    pub fn attach_recorder(&mut self, recorder: crate::log::Recorder) {
+        self.recorder = Some(Box::new(recorder));
+    }
+
+    /// Take the recorder back (to finish the log).
+    pub fn detach_recorder(&mut self) -> Option<crate::log::Recorder> {
+        self.recorder.take().map(|r| *r)
+    }
+
     /// Add an edge (validated by construction). Edges to unseen nodes create them; an edge
-    /// between two components joins them.
+    /// between two components joins them. With a recorder attached, the edge, the step and
+    /// its latency are logged.
     pub fn add_edge(&mut self, edge: Edge) -> Result<Step, OnlineError> {
+        let Some(mut recorder) = self.recorder.take() else {
+            return self.add_edge_inner(edge);
+        };
+        let start = std::time::Instant::now();
+        let step = self.add_edge_inner(edge);
+        let ns = start.elapsed().as_nanos() as u64;
+        if let Ok(s) = &step {
+            recorder.record(&edge, s, ns, self);
+        }
+        self.recorder = Some(recorder);
+        step
+    }
+
+    fn add_edge_inner(&mut self, edge: Edge) -> Result<Step, OnlineError> {
         let e = self.graph.edge_count();
         if e >= u32::MAX as usize {
             return Err(OnlineError::Capacity(u32::MAX as usize));

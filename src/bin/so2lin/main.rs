@@ -9,6 +9,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
+mod replay;
 mod screen;
 mod stream;
 
@@ -149,9 +150,23 @@ enum Command {
         /// Write `node_id theta` lines of the best hypothesis after finishing.
         #[arg(long)]
         orientations: Option<PathBuf>,
+        /// Record every step to this MCAP log.
+        #[arg(long)]
+        log: Option<PathBuf>,
         /// Information-matrix order of edge lines (default: detect).
         #[arg(long, value_enum, default_value = "auto")]
         order: OrderArg,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Rebuild a run from its MCAP log: verify every step, or report replay latencies.
+    Replay {
+        /// The MCAP log.
+        log: PathBuf,
+        /// Compare every replayed step with the recorded one; exit non-zero on a divergence.
+        #[arg(long)]
+        verify: bool,
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
@@ -194,6 +209,7 @@ fn main() -> ExitCode {
             screening,
             family_wise,
             orientations,
+            log,
             order,
             json,
         } => {
@@ -206,9 +222,11 @@ fn main() -> ExitCode {
                 order: order.into(),
                 config,
                 orientations: orientations.as_deref(),
+                log: log.as_deref(),
                 json,
             })
         }
+        Command::Replay { log, verify, json } => replay::run(&log, verify, json),
         Command::Screen {
             file,
             basis,

@@ -7,6 +7,7 @@ use serde_json::{Value, json};
 
 use so2lin::estimate::OrientationEstimator;
 use so2lin::io::{InfoOrder, Reader};
+use so2lin::log::{LogOptions, Recorder};
 use so2lin::online::{OnlineConfig, OnlineEstimator, StepKind};
 
 /// Options of the `stream` command.
@@ -15,6 +16,7 @@ pub struct StreamArgs<'a> {
     pub order: InfoOrder,
     pub config: OnlineConfig,
     pub orientations: Option<&'a Path>,
+    pub log: Option<&'a Path>,
     pub json: bool,
 }
 
@@ -59,14 +61,20 @@ pub fn peak_rss_bytes() -> Option<u64> {
 }
 
 pub fn run(args: StreamArgs) -> Result<(), String> {
+    let (mut all, mut tree, mut cyc) = (Vec::new(), Vec::new(), Vec::new());
     let start = Instant::now();
     let mut est = OnlineEstimator::new(args.config).map_err(|e| e.to_string())?;
     let mut reader = Reader::open(args.file, args.order).map_err(|e| e.to_string())?;
+    if let Some(path) = args.log {
+        let source = args.file.display().to_string();
+        let rec = Recorder::create(path, &args.config, &source, LogOptions::default())
+            .map_err(|e| e.to_string())?;
+        est.attach_recorder(rec);
+    }
     let bar = crate::progress_bar(
         std::fs::metadata(args.file).map(|m| m.len()).unwrap_or(0),
         "streaming",
     );
-    let (mut all, mut tree, mut cyc) = (Vec::new(), Vec::new(), Vec::new());
     for edge in reader.edges() {
         let edge = edge.map_err(|e| e.to_string())?;
         let t = Instant::now();
@@ -82,6 +90,9 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         }
     }
     bar.finish_and_clear();
+    if let Some(rec) = est.detach_recorder() {
+        rec.finish(&mut est).map_err(|e| e.to_string())?;
+    }
     let stream_s = start.elapsed().as_secs_f64();
     let t = Instant::now();
     let result = est.finish().map_err(|e| e.to_string())?;
