@@ -270,3 +270,58 @@ fn screen_reports_one_anchor_per_component() {
     assert_eq!(v["cycles"], 2);
     assert_eq!(v["hypotheses"].as_array().unwrap().len(), 1);
 }
+
+#[test]
+fn sample_logs_regenerate_and_replay_verified() {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("logs");
+    let samples = [
+        ("sim300-seed1.mcap", "1", None),
+        ("sim300-seed2-noisy.mcap", "2", Some("0.25")),
+    ];
+    let mut total = 0;
+    for (name, seed, sigma) in samples {
+        let fresh = scratch(name);
+        let mut cmd = so2lin();
+        cmd.args(["demo", "--poses", "300", "--seed", seed, "--log"])
+            .arg(&fresh);
+        if let Some(s) = sigma {
+            cmd.args(["--sigma-theta", s]);
+        }
+        let out = cmd.output().unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        for log in [fresh, dir.join(name)] {
+            let out = so2lin()
+                .args(["replay", "--verify", "--json"])
+                .arg(&log)
+                .output()
+                .unwrap();
+            assert!(
+                out.status.success(),
+                "{}: {}",
+                log.display(),
+                String::from_utf8_lossy(&out.stderr)
+            );
+            let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+            assert_eq!(v["verified"], true);
+            assert!(v["truncated"].is_null());
+            assert!(v["steps"].as_u64().unwrap() > 400);
+        }
+        total += std::fs::metadata(dir.join(name)).unwrap().len();
+    }
+    assert!(
+        total < 2_000_000,
+        "sample logs must stay under 2 MB together: {total}"
+    );
+    // A foreign file is a one-line error, not a panic.
+    let out = so2lin()
+        .args(["replay", "--verify"])
+        .arg(dir.join("README.md"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert_eq!(String::from_utf8(out.stderr).unwrap().lines().count(), 1);
+}

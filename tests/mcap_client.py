@@ -1,0 +1,51 @@
+"""Independent client: read so2lin's sample MCAP logs with the official Python `mcap`
+package and validate every JSON message against the JSON Schema embedded in the file.
+
+Run by .ci/run inside a virtual environment (`pip install mcap jsonschema`):
+    python tests/mcap_client.py logs/*.mcap
+"""
+import json
+import sys
+from collections import Counter
+
+import jsonschema
+from mcap.reader import make_reader
+
+EXPECTED = {
+    "/so2lin/edge": "so2lin.Edge",
+    "/so2lin/step": "so2lin.Step",
+    "/so2lin/estimate": "so2lin.Estimate",
+    "/so2lin/log": "foxglove.Log",
+}
+
+
+def check(path):
+    counts = Counter()
+    validators = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        topics = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+        assert topics == EXPECTED, f"{path}: channels {topics}"
+        meta = [m for m in reader.iter_metadata() if m.name == "so2lin"]
+        assert len(meta) == 1, f"{path}: so2lin metadata record"
+        for key in ("so2lin_version", "schema_version", "alpha", "dof", "basis", "source"):
+            assert key in meta[0].metadata, f"{path}: metadata lacks {key}"
+        for schema, channel, message in reader.iter_messages():
+            assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
+            if schema.id not in validators:
+                validators[schema.id] = jsonschema.Draft202012Validator(json.loads(schema.data))
+            validators[schema.id].validate(json.loads(message.data))
+            counts[channel.topic] += 1
+        stats = summary.statistics
+    assert counts["/so2lin/edge"] == counts["/so2lin/step"] > 0, f"{path}: {counts}"
+    assert counts["/so2lin/estimate"] >= 1, f"{path}: {counts}"
+    assert sum(counts.values()) == stats.message_count, f"{path}: statistics {stats.message_count}"
+    print(f"{path}: {dict(counts)} — every message valid against its embedded schema")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) < 2:
+        sys.exit("usage: mcap_client.py LOG.mcap ...")
+    for p in sys.argv[1:]:
+        check(p)
