@@ -1,7 +1,8 @@
 //! Online estimator latency (`cargo bench --bench online`).
 //!
 //! - `stream/<input>`: every edge of a file through `add_edge`, in file order (M3500 and
-//!   city10000 when the datasets are present, simulated worlds always).
+//!   city10000 when the datasets are present, simulated worlds always); `stream/<input>_logged`
+//!   the same with an MCAP recorder attached (writing to memory).
 //! - `step/sim<N>/{odometry,loop_closure}`: one more step on a simulated world of N poses
 //!   already streamed: an odometry step to a new pose, or a loop closure re-observing the
 //!   latest odometry edge (a local loop). The state keeps growing across iterations, as on a
@@ -18,6 +19,7 @@ use std::time::{Duration, Instant};
 use criterion::{BatchSize, Criterion, criterion_group, criterion_main};
 use so2lin::graph::{Edge, Pose2};
 use so2lin::io::{InfoOrder, Reader};
+use so2lin::log::{LogOptions, Recorder};
 use so2lin::online::{OnlineConfig, OnlineEstimator};
 use so2lin::sim::{SimConfig, simulate};
 
@@ -60,6 +62,27 @@ fn bench_stream(c: &mut Criterion) {
     for (name, edges) in &inputs {
         group.bench_function(name.as_str(), |b| {
             b.iter(|| streamed(black_box(edges)).counters())
+        });
+    }
+    // Recording overhead: the same stream with an MCAP recorder writing to memory.
+    for (name, edges) in inputs
+        .iter()
+        .filter(|(n, _)| n == "M3500" || n == "sim1000")
+    {
+        group.bench_function(format!("{name}_logged"), |b| {
+            b.iter(|| {
+                let config = OnlineConfig::default();
+                let mut est = OnlineEstimator::new(config).expect("valid config");
+                let sink = Box::new(std::io::Cursor::new(Vec::new()));
+                let rec = Recorder::new(sink, &config, "bench", LogOptions::default())
+                    .expect("in memory");
+                est.attach_recorder(rec);
+                for e in edges.iter() {
+                    est.add_edge(*e).expect("valid edge");
+                }
+                est.detach_recorder()
+                    .map(|r| r.finish(&mut est).expect("in memory"))
+            })
         });
     }
     group.finish();

@@ -9,6 +9,8 @@
 //! | `/so2lin/step` | every step's outcome (the online [`Step`]) and its latency in ns |
 //! | `/so2lin/estimate` | orientation snapshots every N steps and at the end |
 //! | `/so2lin/log` | human-readable events as `foxglove.Log` |
+//! | `/graph` | `foxglove.SceneUpdate`: odometry and loop-closure edges as line lists, ambiguous loops highlighted (with each snapshot) |
+//! | `/poses` | `foxglove.PosesInFrame` in frame `map`: odometry composed with the current orientations (with each snapshot) |
 //!
 //! A metadata record `so2lin` holds the version, configuration, source and
 //! [`SCHEMA_VERSION`]. Log time is the step index (edges carry no timestamps), so a log plays
@@ -46,7 +48,7 @@ pub struct LogOptions {
 impl Default for LogOptions {
     fn default() -> Self {
         Self {
-            snapshot_every: 1000,
+            snapshot_every: 5000,
             flush_every: 64,
         }
     }
@@ -84,10 +86,15 @@ const ESTIMATE_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/draft/2020
 /// The official `foxglove.Log` JSON Schema (foxglove/schemas, `schemas/jsonschema/Log.json`).
 const FOXGLOVE_LOG_SCHEMA: &str = include_str!("log/foxglove_Log.json");
 
+/// The official `foxglove.SceneUpdate` JSON Schema (foxglove/schemas).
+const FOXGLOVE_SCENE_SCHEMA: &str = include_str!("log/foxglove_SceneUpdate.json");
+/// The official `foxglove.PosesInFrame` JSON Schema (foxglove/schemas).
+const FOXGLOVE_POSES_SCHEMA: &str = include_str!("log/foxglove_PosesInFrame.json");
+
 /// Writes an online run to MCAP.
 pub struct Recorder {
     writer: mcap::Writer<Box<dyn Sink>>,
-    channels: [u16; 4],
+    channels: [u16; 6],
     options: LogOptions,
     steps: u64,
     since_flush: usize,
@@ -98,6 +105,8 @@ const EDGE: usize = 0;
 const STEP: usize = 1;
 const ESTIMATE: usize = 2;
 const LOG: usize = 3;
+const GRAPH: usize = 4;
+const POSES: usize = 5;
 
 impl Recorder {
     /// Start a log in a file.
@@ -135,12 +144,14 @@ impl Recorder {
             .profile("")
             .library(format!("so2lin {}", env!("CARGO_PKG_VERSION")));
         let mut writer = opts.create(sink)?;
-        let mut channels = [0u16; 4];
+        let mut channels = [0u16; 6];
         let defs = [
             ("so2lin.Edge", EDGE_SCHEMA, "/so2lin/edge"),
             ("so2lin.Step", STEP_SCHEMA, "/so2lin/step"),
             ("so2lin.Estimate", ESTIMATE_SCHEMA, "/so2lin/estimate"),
             ("foxglove.Log", FOXGLOVE_LOG_SCHEMA, "/so2lin/log"),
+            ("foxglove.SceneUpdate", FOXGLOVE_SCENE_SCHEMA, "/graph"),
+            ("foxglove.PosesInFrame", FOXGLOVE_POSES_SCHEMA, "/poses"),
         ];
         for (k, (name, schema, topic)) in defs.into_iter().enumerate() {
             let id = writer.add_schema(name, "jsonschema", schema.as_bytes())?;
@@ -273,7 +284,15 @@ impl Recorder {
         self.put(
             ESTIMATE,
             &json!({"step": self.steps, "nodes": nodes, "theta": theta}),
-        )
+        )?;
+        let pos = crate::estimate::composed_positions(est.graph(), &theta);
+        let flagged: std::collections::BTreeSet<usize> = est
+            .ambiguous()
+            .iter()
+            .map(|&c| est.cycles()[c].chord() as usize)
+            .collect();
+        self.put(GRAPH, &scene_json(self.steps, est, &pos, &flagged))?;
+        self.put(POSES, &poses_json(self.steps, &pos, &theta))
     }
 
     /// The first recording error, if any.
@@ -290,6 +309,74 @@ impl Recorder {
         self.writer.finish()?;
         Ok(self.steps)
     }
+}
+
+fn stamp(step: u64) -> Value {
+    json!({"sec": step, "nsec": 0})
+}
+
+fn point(p: (f64, f64)) -> Value {
+    json!({"x": p.0, "y": p.1, "z": 0.0})
+}
+
+fn quaternion(theta: f64) -> Value {
+    let (s, c) = (0.5 * theta).sin_cos();
+    json!({"x": 0.0, "y": 0.0, "z": s, "w": c})
+}
+
+/// `foxglove.SceneUpdate`: odometry edges (grey) and loop closures (blue) as line lists, the
+/// chords of ambiguous cycles (red, thicker) highlighted, in frame `map`.
+fn scene_json(
+    step: u64,
+    est: &OnlineEstimator,
+    pos: &[(f64, f64)],
+    flagged: &std::collections::BTreeSet<usize>,
+) -> Value {
+    let g = est.graph();
+    let mut sets: [Vec<Value>; 3] = Default::default();
+    for (e, (&(a, b), edge)) in g.endpoints().iter().zip(g.edges()).enumerate() {
+        let k = if flagged.contains(&e) {
+            2
+        } else if edge.is_odometric() {
+            0
+        } else {
+            1
+        };
+        sets[k].push(point(pos[a]));
+        sets[k].push(point(pos[b]));
+    }
+    let colors = [
+        (0.6, 0.6, 0.6, 1.0),
+        (0.2, 0.4, 1.0, 0.8),
+        (1.0, 0.1, 0.1, 1.0),
+    ];
+    let thickness = [0.05, 0.03, 0.12];
+    let lines: Vec<Value> = sets
+        .into_iter()
+        .enumerate()
+        .map(|(k, points)| {
+            let (r, gr, b, a) = colors[k];
+            json!({"type": 2, "pose": {"position": point((0.0, 0.0)), "orientation": quaternion(0.0)},
+                   "thickness": thickness[k], "scale_invariant": false, "points": points,
+                   "color": {"r": r, "g": gr, "b": b, "a": a}, "colors": [], "indices": []})
+        })
+        .collect();
+    json!({"deletions": [], "entities": [{
+        "timestamp": stamp(step), "frame_id": "map", "id": "so2lin-graph",
+        "lifetime": {"sec": 0, "nsec": 0}, "frame_locked": false, "metadata": [],
+        "arrows": [], "cubes": [], "spheres": [], "cylinders": [], "lines": lines,
+        "triangles": [], "texts": [], "models": []
+    }]})
+}
+
+/// `foxglove.PosesInFrame`: every pose in frame `map`.
+fn poses_json(step: u64, pos: &[(f64, f64)], theta: &[f64]) -> Value {
+    let poses: Vec<Value> = pos
+        .iter()
+        .zip(theta)
+        .map(|(&p, &t)| json!({"position": point(p), "orientation": quaternion(t)}))
+        .collect();
+    json!({"timestamp": stamp(step), "frame_id": "map", "poses": poses})
 }
 
 fn edge_json(step: u64, e: &Edge) -> Value {

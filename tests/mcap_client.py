@@ -16,6 +16,8 @@ EXPECTED = {
     "/so2lin/step": "so2lin.Step",
     "/so2lin/estimate": "so2lin.Estimate",
     "/so2lin/log": "foxglove.Log",
+    "/graph": "foxglove.SceneUpdate",
+    "/poses": "foxglove.PosesInFrame",
 }
 
 
@@ -40,6 +42,7 @@ def check(path):
         stats = summary.statistics
     assert counts["/so2lin/edge"] == counts["/so2lin/step"] > 0, f"{path}: {counts}"
     assert counts["/so2lin/estimate"] >= 1, f"{path}: {counts}"
+    assert counts["/graph"] == counts["/poses"] == counts["/so2lin/estimate"], f"{path}: {counts}"
     assert sum(counts.values()) == stats.message_count, f"{path}: statistics {stats.message_count}"
     print(f"{path}: {dict(counts)} — every message valid against its embedded schema")
 
