@@ -238,6 +238,8 @@ pub struct Conditioner {
     cols: Vec<Vec<(u32, f64)>>,
     /// Diagonal of L: conditional standard deviations in determination order.
     diag: Vec<f64>,
+    /// Nonzeros of L (diagonal included).
+    nnz: usize,
     /// `z = L⁻¹ (u_U − μ_U)`.
     z: Vec<f64>,
     /// Elimination tree: first off-diagonal row of each column (NONE for none yet).
@@ -289,9 +291,9 @@ impl Conditioner {
         self.z.iter().map(|v| v * v).sum()
     }
 
-    /// Nonzeros of L (diagonal included).
+    /// Nonzeros of L (diagonal included), kept as a counter: O(1).
     pub fn factor_nnz(&self) -> usize {
-        self.diag.len() + self.cols.iter().map(Vec::len).sum::<usize>()
+        self.nnz
     }
 
     /// Solve `y = L⁻¹ P_{U,i}` into the scratch (`self.y` on `self.pattern`).
@@ -384,6 +386,39 @@ impl Conditioner {
     ) -> Result<Moments, SingularError> {
         self.solve(model, i);
         let m = self.moments_from_scratch(model, i);
+        self.append_solved(model, i, u, m)?;
+        Ok(m)
+    }
+
+    /// Test-and-determine with one solve: compute the moments of cycle i, ask `choose` for a
+    /// value, and when it gives one, determine the cycle from the same solve (as
+    /// [`determine`](Self::determine) would, without solving twice). Returns the moments and
+    /// the value determined, if any; on error nothing changes.
+    pub fn decide(
+        &mut self,
+        model: &GammaModel,
+        i: usize,
+        choose: impl FnOnce(Moments) -> Option<i64>,
+    ) -> (Moments, Result<Option<i64>, SingularError>) {
+        self.solve(model, i);
+        let m = self.moments_from_scratch(model, i);
+        match choose(m) {
+            Some(u) => (m, self.append_solved(model, i, u, m).map(|()| Some(u))),
+            None => {
+                self.clear_scratch();
+                (m, Ok(None))
+            }
+        }
+    }
+
+    /// Append cycle i with value u from the solve in the scratch (`m` its moments).
+    fn append_solved(
+        &mut self,
+        model: &GammaModel,
+        i: usize,
+        u: i64,
+        m: Moments,
+    ) -> Result<(), SingularError> {
         // Relative guard: a variance lost to cancellation is not a variance.
         if m.var.is_nan() || m.var <= model.variance(i) * 1e-12 {
             self.clear_scratch();
@@ -399,6 +434,7 @@ impl Conditioner {
         for k in 0..self.pattern.len() {
             let p = self.pattern[k] as usize;
             self.cols[p].push((q, self.y[p]));
+            self.nnz += 1;
             if self.parent[p] == NONE {
                 self.parent[p] = q;
             }
@@ -411,10 +447,11 @@ impl Conditioner {
         self.cycle_at.push(i as u32);
         self.value.push(u);
         self.cols.push(Vec::new());
+        self.nnz += 1;
         self.parent.push(NONE);
         self.diag.push(s);
         self.z.push((u as f64 - m.mean) / s);
-        Ok(m)
+        Ok(())
     }
 
     /// Rebuild L in a fill-reducing order of the determined cycles (same values), with the
@@ -560,6 +597,8 @@ mod tests {
                 assert!((q[x * a.len() + y] - var_ref[(x, y)]).abs() < 1e-12);
             }
         }
+        let recount = cond.diag.len() + cond.cols.iter().map(Vec::len).sum::<usize>();
+        assert_eq!(cond.factor_nnz(), recount);
         let chi2_ref = diff.dot(&chol.solve(&diff));
         assert!((cond.chi2() - chi2_ref).abs() < 1e-9 * chi2_ref.max(1.0));
         assert_eq!(cond.value(det[0]), Some(-1));

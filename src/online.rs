@@ -338,14 +338,11 @@ impl OnlineEstimator {
         let t = self.model.push_cycle(&cycle, &self.sigma2, &self.delta);
         self.cycles.push(cycle);
         self.screener.grow(t + 1);
-        let m = self.screener.cond.moments(&self.model, t);
         let cycles = &self.cycles;
-        let iv = self.screener.test(t, m, self.q, || edges_of(&cycles[t]));
+        let (m, iv, determined) = self
+            .screener
+            .screen(&self.model, t, self.q, || edges_of(&cycles[t]));
         let mut rescreened = Vec::new();
-        let determined = match iv.single() {
-            Some(v) => self.screener.determine(&self.model, t, v).is_ok(),
-            None => false,
-        };
         if determined {
             self.propagate(t, &mut rescreened);
             self.maybe_reorder();
@@ -379,19 +376,17 @@ impl OnlineEstimator {
                 .filter(|j| self.ambiguous.contains_key(j))
                 .collect();
             for i in neighbours {
-                let m = self.screener.cond.moments(&self.model, i);
                 let before = self.screener.interval(i);
                 let cycles = &self.cycles;
-                let after = self.screener.test(i, m, self.q, || edges_of(&cycles[i]));
+                let (m, after, determined) = self
+                    .screener
+                    .screen(&self.model, i, self.q, || edges_of(&cycles[i]));
                 self.counters.rescreens += 1;
-                self.ambiguous.insert(i, m);
-                let determined = match after.single() {
-                    Some(v) => self.screener.determine(&self.model, i, v).is_ok(),
-                    None => false,
-                };
                 if determined {
                     self.ambiguous.remove(&i);
                     queue.push_back(i);
+                } else {
+                    self.ambiguous.insert(i, m);
                 }
                 let decision = Decision::of(after, determined);
                 match out.iter_mut().find(|x| x.cycle == i) {

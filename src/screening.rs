@@ -535,6 +535,30 @@ impl Screener {
         iv
     }
 
+    /// Screen cycle i given the determined set and determine it when one candidate is left,
+    /// with a single sparse solve. Returns its moments, its candidates and whether it was
+    /// determined (a numerically singular determination leaves it undetermined).
+    pub fn screen(
+        &mut self,
+        model: &GammaModel,
+        i: usize,
+        q: f64,
+        edges: impl FnOnce() -> Vec<usize>,
+    ) -> (Moments, Interval, bool) {
+        let (m, outcome) = self.cond.decide(model, i, |m| Interval::new(m, q).single());
+        let iv = self.test(i, m, q, edges);
+        if let Ok(Some(v)) = outcome {
+            self.determined[i] = true;
+            self.intervals[i] = Interval {
+                lo: v,
+                hi: v,
+                inconsistent: false,
+            };
+            return (m, iv, true);
+        }
+        (m, iv, false)
+    }
+
     /// Determine cycle i with value v (appends to the conditioner). On error nothing changes.
     pub fn determine(
         &mut self,

@@ -27,6 +27,21 @@ fn simulated(name: &str, args: &[&str]) -> PathBuf {
     out
 }
 
+/// Run `so2lin` with `args`, expect success, and parse its stdout as JSON.
+fn run_json<I, S>(args: I) -> serde_json::Value
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<std::ffi::OsStr>,
+{
+    let out = so2lin().args(args).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
 #[test]
 fn simulate_same_seed_is_byte_identical() {
     let (a, b) = (scratch("a.g2o"), scratch("b.g2o"));
@@ -104,18 +119,15 @@ fn screen_json_has_the_documented_fields_and_writes_orientations() {
     );
     let orient = scratch("screen_orient.txt");
     for basis in ["odometric", "mst", "incremental"] {
-        let out = so2lin()
-            .args(["screen", "--json", "--basis", basis, "--orientations"])
-            .arg(&orient)
-            .arg(&g)
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        let v = run_json([
+            "screen".as_ref(),
+            "--json".as_ref(),
+            "--basis".as_ref(),
+            basis.as_ref(),
+            "--orientations".as_ref(),
+            orient.as_os_str(),
+            g.as_os_str(),
+        ]);
         for key in [
             "nodes",
             "edges",
@@ -178,18 +190,13 @@ fn screen_json_has_the_documented_fields_and_writes_orientations() {
 fn stream_json_reports_latency_and_matches_screen() {
     let g = simulated("stream.g2o", &["--poses", "600", "--seed", "8"]);
     let (so, bo) = (scratch("stream_orient.txt"), scratch("screen_orient2.txt"));
-    let out = so2lin()
-        .args(["stream", "--json", "--orientations"])
-        .arg(&so)
-        .arg(&g)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let v = run_json([
+        "stream".as_ref(),
+        "--json".as_ref(),
+        "--orientations".as_ref(),
+        so.as_os_str(),
+        g.as_os_str(),
+    ]);
     for key in [
         "steps",
         "cycles",

@@ -61,7 +61,6 @@ pub fn peak_rss_bytes() -> Option<u64> {
 }
 
 pub fn run(args: StreamArgs) -> Result<(), String> {
-    let (mut all, mut tree, mut cyc) = (Vec::new(), Vec::new(), Vec::new());
     let start = Instant::now();
     let mut est = OnlineEstimator::new(args.config).map_err(|e| e.to_string())?;
     let mut reader = Reader::open(args.file, args.order).map_err(|e| e.to_string())?;
@@ -75,6 +74,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         std::fs::metadata(args.file).map(|m| m.len()).unwrap_or(0),
         "streaming",
     );
+    let (mut all, mut tree, mut cyc) = (Vec::new(), Vec::new(), Vec::new());
     for edge in reader.edges() {
         let edge = edge.map_err(|e| e.to_string())?;
         let t = Instant::now();
