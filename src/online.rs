@@ -285,6 +285,11 @@ impl OnlineEstimator {
         self.recorder = Some(Box::new(recorder));
     }
 
+    /// The attached recorder (to [`sync`](crate::log::Recorder::sync) it or read its error).
+    pub fn recorder_mut(&mut self) -> Option<&mut crate::log::Recorder> {
+        self.recorder.as_deref_mut()
+    }
+
     /// Take the recorder back (to finish the log).
     pub fn detach_recorder(&mut self) -> Option<crate::log::Recorder> {
         self.recorder.take().map(|r| *r)

@@ -50,9 +50,12 @@ fn record(edges: &[Edge], options: LogOptions) -> (Vec<u8>, Vec<Option<usize>>) 
     for e in edges {
         let step = est.add_edge(*e).unwrap();
         since += 1;
-        let flushed = matches!(step.kind, StepKind::Cycle(_)) || since >= options.flush_every;
+        let flushed = (options.flush_on_loop_closure && matches!(step.kind, StepKind::Cycle(_)))
+            || since >= options.flush_every;
         if flushed {
             since = 0;
+            // The writer thread flushes on its own; wait for it to reach this step.
+            est.recorder_mut().unwrap().sync().unwrap();
         }
         lengths.push(flushed.then(|| sink.len()));
     }
@@ -100,15 +103,19 @@ fn datasets_and_simulated_worlds_replay_without_divergence() {
 
 #[test]
 fn a_log_cut_anywhere_replays_every_flushed_step() {
-    let w = simulate(&SimConfig::new(600, 21)).unwrap();
-    let edges = w.graph.edges();
-    let (bytes, lengths) = record(
-        edges,
-        LogOptions {
+    for flush_on_loop_closure in [true, false] {
+        cut_anywhere(LogOptions {
             snapshot_every: 100,
             flush_every: 16,
-        },
-    );
+            flush_on_loop_closure,
+        });
+    }
+}
+
+fn cut_anywhere(options: LogOptions) {
+    let w = simulate(&SimConfig::new(600, 21)).unwrap();
+    let edges = w.graph.edges();
+    let (bytes, lengths) = record(edges, options);
     // Steps up to k are in the file once the flush at step k reached the sink.
     let flushed_by = |cut: usize| {
         (0..edges.len())
@@ -158,4 +165,72 @@ fn corrupt_and_foreign_files_are_errors() {
             let _ = replay(&log, true);
         }
     }
+}
+
+/// A file that cannot grow beyond `limit` bytes.
+struct Failing {
+    file: Cursor<Vec<u8>>,
+    limit: u64,
+}
+
+impl Write for Failing {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        if self.file.position() + buf.len() as u64 > self.limit {
+            return Err(std::io::Error::other("disk full"));
+        }
+        self.file.write(buf)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+impl Seek for Failing {
+    fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+        self.file.seek(pos)
+    }
+}
+
+#[test]
+fn a_failing_sink_is_reported_and_never_fails_a_step() {
+    let w = simulate(&SimConfig::new(300, 5)).unwrap();
+    let config = OnlineConfig::default();
+    let mut plain = OnlineEstimator::new(config).unwrap();
+    let mut logged = OnlineEstimator::new(config).unwrap();
+    let sink = Failing {
+        file: Cursor::new(Vec::new()),
+        limit: 20_000,
+    };
+    let rec = Recorder::new(Box::new(sink), &config, "test", LogOptions::default()).unwrap();
+    logged.attach_recorder(rec);
+    for e in w.graph.edges() {
+        let a = plain.add_edge(*e).unwrap();
+        let b = logged.add_edge(*e).unwrap();
+        assert_eq!(a, b);
+    }
+    let sync = logged.recorder_mut().unwrap().sync();
+    assert!(sync.is_err());
+    let err = logged.recorder_mut().unwrap().error().unwrap();
+    assert!(err.contains("disk full"), "{err}");
+    let rec = logged.detach_recorder().unwrap();
+    assert!(rec.finish(&mut logged).is_err());
+    assert_eq!(plain.orientations().unwrap(), logged.orientations().unwrap());
+}
+
+#[test]
+fn a_recorder_dropped_without_finish_leaves_a_complete_file() {
+    let w = simulate(&SimConfig::new(200, 8)).unwrap();
+    let sink = Shared::default();
+    let config = OnlineConfig::default();
+    let mut est = OnlineEstimator::new(config).unwrap();
+    est.attach_recorder(
+        Recorder::new(Box::new(sink.clone()), &config, "t", LogOptions::default()).unwrap(),
+    );
+    for e in w.graph.edges() {
+        est.add_edge(*e).unwrap();
+    }
+    drop(est);
+    let log = read_log(&sink.bytes()).unwrap();
+    assert!(log.truncated.is_none(), "{:?}", log.truncated);
+    assert_eq!(log.steps.len(), w.graph.edge_count());
 }

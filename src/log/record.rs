@@ -1,0 +1,503 @@
+//! The recorder: the estimator's thread hands every step to a writer thread, which serialises
+//! the messages, fills zstd chunks and writes the file — the SLAM loop pays for a copy of the
+//! step and a queue push, not for JSON, compression or I/O (the design of a bag recorder).
+//!
+//! **Flush policy** (crash safety). The writer closes the open chunk — compressed, written to
+//! the sink, the sink flushed — after every loop closure (unless
+//! [`LogOptions::flush_on_loop_closure`] is off), after at most [`LogOptions::flush_every`]
+//! steps, on [`Recorder::sync`] and at the end. Loop closures that queued up while the writer
+//! was busy share one flush (group commit): a step is on disk no later than under a flush per
+//! loop closure, and a writer that falls behind catches up instead of compressing a tiny chunk
+//! per step. A log cut at any byte holds every step whose chunk was closed before the cut.
+//!
+//! The messages and their order do not depend on the writer's timing; only the chunk
+//! boundaries can, so replays are identical while the files' bytes may differ (the recorded
+//! latencies differ anyway).
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+
+use serde_json::Value;
+
+use super::foxglove::{self, LogLine, PosesInFrame, SceneUpdate, Stamp, Style};
+use super::{
+    EDGE_SCHEMA, ESTIMATE_SCHEMA, LogError, LogOptions, SCHEMA_VERSION, STEP_SCHEMA, Sink,
+};
+use crate::graph::Edge;
+use crate::online::{Decision, OnlineConfig, OnlineEstimator, Step, StepKind};
+
+/// Records a writer thread may hold back before `record` waits for it (back-pressure bounds
+/// the memory of a writer that cannot keep up).
+const QUEUE: usize = 4096;
+
+/// Writes an online run to MCAP (see the [module docs](self) for the flush policy).
+pub struct Recorder {
+    tx: Option<SyncSender<Record>>,
+    worker: Option<JoinHandle<Result<u64, LogError>>>,
+    failure: Arc<Mutex<Option<String>>>,
+    options: LogOptions,
+    steps: u64,
+}
+
+/// What the recorder hands to the writer thread.
+enum Record {
+    Step {
+        edge: Edge,
+        step: Step,
+        latency_ns: u64,
+    },
+    Snapshot(Snapshot),
+    Sync(SyncSender<()>),
+    Finish(Snapshot),
+}
+
+/// The estimate at one step, for `/so2lin/estimate`, `/graph` and `/poses`.
+struct Snapshot {
+    nodes: Vec<u64>,
+    theta: Vec<f64>,
+    pos: Vec<(f64, f64)>,
+    segments: [Vec<(usize, usize)>; 3],
+}
+
+impl Snapshot {
+    fn of(est: &mut OnlineEstimator) -> Result<Self, LogError> {
+        let theta = est
+            .orientations()
+            .map_err(|e| LogError::Format(e.to_string()))?
+            .to_vec();
+        let g = est.graph();
+        let nodes = g.nodes().iter().map(|n| n.id).collect();
+        let pos = crate::estimate::composed_positions(g, &theta);
+        let flagged: std::collections::BTreeSet<usize> = est
+            .ambiguous()
+            .iter()
+            .map(|&c| est.cycles()[c].chord() as usize)
+            .collect();
+        let mut segments: [Vec<(usize, usize)>; 3] = Default::default();
+        for (e, (&ends, edge)) in g.endpoints().iter().zip(g.edges()).enumerate() {
+            let style = if flagged.contains(&e) {
+                Style::Flagged
+            } else if edge.is_odometric() {
+                Style::Odometry
+            } else {
+                Style::LoopClosure
+            };
+            segments[style as usize].push(ends);
+        }
+        Ok(Self {
+            nodes,
+            theta,
+            pos,
+            segments,
+        })
+    }
+}
+
+impl Recorder {
+    /// Start a log in a file.
+    pub fn create(
+        path: &Path,
+        config: &OnlineConfig,
+        source: &str,
+        options: LogOptions,
+    ) -> Result<Self, LogError> {
+        let file = std::fs::File::create(path).map_err(|source| LogError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Self::new(
+            Box::new(std::io::BufWriter::new(file)),
+            config,
+            source,
+            options,
+        )
+    }
+
+    /// Start a log in any seekable sink: writes the header, schemas, channels and metadata,
+    /// then hands the file to the writer thread.
+    pub fn new(
+        sink: Box<dyn Sink>,
+        config: &OnlineConfig,
+        source: &str,
+        options: LogOptions,
+    ) -> Result<Self, LogError> {
+        let opts = mcap::WriteOptions::new()
+            .compression(Some(mcap::Compression::Zstd))
+            // Chunks are small (one per loop closure): compress on the writer thread itself,
+            // without a worker-pool handoff per chunk.
+            .compression_threads(0)
+            .compression_level(1)
+            .profile("")
+            .library(format!("so2lin {}", env!("CARGO_PKG_VERSION")));
+        let mut mcap = opts.create(sink)?;
+        let mut channels = [0u16; 6];
+        let defs = [
+            ("so2lin.Edge", EDGE_SCHEMA, "/so2lin/edge"),
+            ("so2lin.Step", STEP_SCHEMA, "/so2lin/step"),
+            ("so2lin.Estimate", ESTIMATE_SCHEMA, "/so2lin/estimate"),
+            ("foxglove.Log", foxglove::LOG_SCHEMA, "/so2lin/log"),
+            ("foxglove.SceneUpdate", foxglove::SCENE_SCHEMA, "/graph"),
+            ("foxglove.PosesInFrame", foxglove::POSES_SCHEMA, "/poses"),
+        ];
+        for (k, (name, schema, topic)) in defs.into_iter().enumerate() {
+            let id = mcap.add_schema(name, "jsonschema", schema.as_bytes())?;
+            channels[k] = mcap.add_channel(id, topic, "json", &BTreeMap::new())?;
+        }
+        let s = config.screening;
+        let metadata: BTreeMap<String, String> = [
+            ("so2lin_version", env!("CARGO_PKG_VERSION").to_owned()),
+            ("schema_version", SCHEMA_VERSION.to_owned()),
+            ("source", source.to_owned()),
+            ("basis", "incremental".to_owned()),
+            ("alpha", format!("{:?}", s.alpha)),
+            ("dof", s.dof.to_string()),
+            ("family_wise", s.family_wise.to_string()),
+            ("max_hypotheses", s.max_hypotheses.to_string()),
+            ("expected_cycles", config.expected_cycles.to_string()),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_owned(), v))
+        .collect();
+        mcap.write_metadata(&mcap::records::Metadata {
+            name: "so2lin".into(),
+            metadata,
+        })?;
+        mcap.flush()?;
+        let writer = Writer {
+            mcap,
+            channels,
+            options,
+            steps: 0,
+            since_flush: 0,
+            pending: false,
+            buf: Vec::with_capacity(1024),
+        };
+        let (tx, rx) = sync_channel(QUEUE);
+        let failure = Arc::new(Mutex::new(None));
+        let fail = Arc::clone(&failure);
+        let worker = std::thread::Builder::new()
+            .name("so2lin-log".into())
+            .spawn(move || {
+                let result = writer.run(&rx);
+                if let Err(e) = &result
+                    && let Ok(mut f) = fail.lock()
+                {
+                    *f = Some(describe(e));
+                }
+                result
+            })
+            .map_err(|source| LogError::Io {
+                path: "log writer thread".into(),
+                source,
+            })?;
+        Ok(Self {
+            tx: Some(tx),
+            worker: Some(worker),
+            failure,
+            options,
+            steps: 0,
+        })
+    }
+
+    fn send(&mut self, record: Record) {
+        // A closed queue means the writer stopped on an error, kept in `failure`.
+        if let Some(tx) = &self.tx
+            && tx.send(record).is_err()
+        {
+            self.tx = None;
+        }
+    }
+
+    /// Record one step: its input edge, its outcome with the latency, and a snapshot when due.
+    /// Errors are kept (see [`error`](Self::error)); recording never fails a step.
+    pub fn record(&mut self, edge: &Edge, step: &Step, latency_ns: u64, est: &mut OnlineEstimator) {
+        if self.tx.is_none() {
+            return;
+        }
+        self.send(Record::Step {
+            edge: *edge,
+            step: step.clone(),
+            latency_ns,
+        });
+        self.steps += 1;
+        let every = self.options.snapshot_every as u64;
+        if every > 0 && self.steps.is_multiple_of(every) {
+            match Snapshot::of(est) {
+                Ok(s) => self.send(Record::Snapshot(s)),
+                Err(e) => self.fail(e),
+            }
+        }
+    }
+
+    fn fail(&mut self, e: LogError) {
+        if let Ok(mut f) = self.failure.lock() {
+            f.get_or_insert(describe(&e));
+        }
+        self.tx = None;
+    }
+
+    /// Block until every step recorded so far is written and its chunk flushed to the sink.
+    pub fn sync(&mut self) -> Result<(), LogError> {
+        let (reply, done) = sync_channel(1);
+        self.send(Record::Sync(reply));
+        done.recv().map_err(|_| {
+            LogError::Format(
+                self.error()
+                    .unwrap_or_else(|| "the log writer stopped".into()),
+            )
+        })
+    }
+
+    /// The first recording error, if any.
+    pub fn error(&self) -> Option<String> {
+        self.failure.lock().ok().and_then(|f| f.clone())
+    }
+
+    /// Write the final snapshot and the summary, close the file, and return the number of
+    /// steps recorded.
+    pub fn finish(mut self, est: &mut OnlineEstimator) -> Result<u64, LogError> {
+        match Snapshot::of(est) {
+            Ok(s) => self.send(Record::Finish(s)),
+            Err(e) => self.fail(e),
+        }
+        self.tx = None;
+        let result = match self.worker.take().map(JoinHandle::join) {
+            Some(Ok(r)) => r,
+            Some(Err(_)) => Err(LogError::Format("the log writer thread panicked".into())),
+            None => Err(LogError::Format("the log writer is gone".into())),
+        };
+        match self.error() {
+            Some(e) => Err(LogError::Format(e)),
+            None => result,
+        }
+    }
+}
+
+/// An error with its chain of causes ("MCAP: I/O error …: disk full").
+fn describe(e: &LogError) -> String {
+    let mut text = e.to_string();
+    let mut cause = std::error::Error::source(e);
+    while let Some(c) = cause {
+        let more = c.to_string();
+        if !text.contains(&more) {
+            text = format!("{text}: {more}");
+        }
+        cause = c.source();
+    }
+    text
+}
+
+impl Drop for Recorder {
+    /// Without [`finish`](Recorder::finish), the writer still flushes what it holds and writes
+    /// the summary (no final snapshot).
+    fn drop(&mut self) {
+        self.tx = None;
+        if let Some(w) = self.worker.take() {
+            let _ = w.join();
+        }
+    }
+}
+
+const EDGE: usize = 0;
+const STEP: usize = 1;
+const ESTIMATE: usize = 2;
+const LOG: usize = 3;
+const GRAPH: usize = 4;
+const POSES: usize = 5;
+
+/// The writer thread's state.
+struct Writer {
+    mcap: mcap::Writer<Box<dyn Sink>>,
+    channels: [u16; 6],
+    options: LogOptions,
+    steps: u64,
+    since_flush: usize,
+    /// A loop closure is waiting for its flush.
+    pending: bool,
+    /// Reused serialisation buffer.
+    buf: Vec<u8>,
+}
+
+impl Writer {
+    /// Take records until the queue closes or `Finish` arrives; flush for pending loop
+    /// closures whenever the queue runs empty (group commit).
+    fn run(mut self, rx: &Receiver<Record>) -> Result<u64, LogError> {
+        while let Ok(first) = rx.recv() {
+            let mut next = Some(first);
+            while let Some(record) = next {
+                match record {
+                    Record::Step {
+                        edge,
+                        step,
+                        latency_ns,
+                    } => self.step(&edge, &step, latency_ns)?,
+                    Record::Snapshot(s) => self.snapshot(&s)?,
+                    Record::Sync(reply) => {
+                        self.flush()?;
+                        // The caller may have stopped waiting; nothing to do then.
+                        let _ = reply.send(());
+                    }
+                    Record::Finish(s) => {
+                        self.snapshot(&s)?;
+                        self.mcap.finish()?;
+                        return Ok(self.steps);
+                    }
+                }
+                next = rx.try_recv().ok();
+            }
+            if self.pending {
+                self.flush()?;
+            }
+        }
+        self.mcap.finish()?;
+        Ok(self.steps)
+    }
+
+    fn flush(&mut self) -> Result<(), LogError> {
+        self.mcap.flush()?;
+        self.since_flush = 0;
+        self.pending = false;
+        Ok(())
+    }
+
+    /// Serialise `value` into the reused buffer and write it as one message on `channel`.
+    fn put<T: serde::Serialize + ?Sized>(
+        &mut self,
+        channel: usize,
+        value: &T,
+    ) -> Result<(), LogError> {
+        self.buf.clear();
+        serde_json::to_writer(&mut self.buf, value).map_err(|e| LogError::Format(e.to_string()))?;
+        let header = mcap::records::MessageHeader {
+            channel_id: self.channels[channel],
+            sequence: self.steps as u32,
+            log_time: self.steps,
+            publish_time: self.steps,
+        };
+        self.mcap.write_to_known_channel(&header, &self.buf)?;
+        Ok(())
+    }
+
+    fn log_line(&mut self, level: u8, message: &str) -> Result<(), LogError> {
+        let line = LogLine {
+            timestamp: Stamp::at(self.steps),
+            level,
+            message,
+            name: "so2lin",
+            file: "",
+            line: 0,
+        };
+        self.put(LOG, &line)
+    }
+
+    fn step(&mut self, edge: &Edge, step: &Step, latency_ns: u64) -> Result<(), LogError> {
+        self.put(EDGE, &EdgeMsg::new(self.steps, edge))?;
+        let msg = StepMsg {
+            step: self.steps,
+            latency_ns,
+            outcome: step,
+        };
+        self.put(STEP, &msg)?;
+        if let StepKind::Cycle(c) = &step.kind {
+            let (from, to) = (edge.from(), edge.to());
+            match c.decision {
+                Decision::Ambiguous => self.log_line(
+                    3,
+                    &format!(
+                        "cycle {} (edge {from}→{to}) is ambiguous: γ ∈ {}..={}",
+                        c.cycle, c.candidates.lo, c.candidates.hi
+                    ),
+                )?,
+                Decision::Inconsistent => self.log_line(
+                    3,
+                    &format!(
+                        "cycle {} (edge {from}→{to}) is inconsistent: no integer within its interval",
+                        c.cycle
+                    ),
+                )?,
+                Decision::Determined => {}
+            }
+        }
+        for r in step.rescreened.iter().filter(|r| r.changed) {
+            self.log_line(
+                2,
+                &format!("cycle {} re-screened: {:?}", r.cycle, r.decision),
+            )?;
+        }
+        self.steps += 1;
+        self.since_flush += 1;
+        if self.options.flush_on_loop_closure && matches!(step.kind, StepKind::Cycle(_)) {
+            self.pending = true;
+        }
+        if self.since_flush >= self.options.flush_every.max(1) {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    fn snapshot(&mut self, s: &Snapshot) -> Result<(), LogError> {
+        #[derive(serde::Serialize)]
+        struct Estimate<'a> {
+            step: u64,
+            nodes: &'a [u64],
+            theta: &'a [f64],
+        }
+        let msg = Estimate {
+            step: self.steps,
+            nodes: &s.nodes,
+            theta: &s.theta,
+        };
+        self.put(ESTIMATE, &msg)?;
+        self.put(GRAPH, &SceneUpdate::graph(self.steps, &s.segments, &s.pos))?;
+        self.put(POSES, &PosesInFrame::new(self.steps, &s.pos, &s.theta))
+    }
+}
+
+/// A `/so2lin/edge` message.
+#[derive(serde::Serialize)]
+struct EdgeMsg {
+    step: u64,
+    from: u64,
+    to: u64,
+    dx: f64,
+    dy: f64,
+    dtheta: f64,
+    information: [f64; 6],
+}
+
+impl EdgeMsg {
+    fn new(step: u64, e: &Edge) -> Self {
+        let m = e.measurement();
+        Self {
+            step,
+            from: e.from(),
+            to: e.to(),
+            dx: m.x,
+            dy: m.y,
+            dtheta: m.theta,
+            information: e.information().0,
+        }
+    }
+}
+
+/// A `/so2lin/step` message: the step's outcome with its index and latency.
+#[derive(serde::Serialize)]
+struct StepMsg<'a> {
+    step: u64,
+    latency_ns: u64,
+    #[serde(flatten)]
+    outcome: &'a Step,
+}
+
+/// The step message as JSON with latency 0 (how replay compares steps).
+pub(super) fn step_json(step: u64, s: &Step) -> Result<Value, LogError> {
+    let msg = StepMsg {
+        step,
+        latency_ns: 0,
+        outcome: s,
+    };
+    serde_json::to_value(&msg).map_err(|e| LogError::Format(e.to_string()))
+}
