@@ -1,14 +1,17 @@
 //! The batch pipeline of the paper (METHOD.md §2–§6, §8): basis → γ model → first screening
 //! (iterated) → second screening (iterated) → hypotheses with χ², p-value and the
-//! success-rate bound. It is the reference the online estimator is checked against, and it is
+//! success-rate bound; then, per hypothesis, poses ([`solve`]): wraps → orientations θ* →
+//! least-squares positions → SE(2) refinement. It is the reference the online estimator is checked against, and it is
 //! only a driver: every formula lives in [`crate::cycles`], [`crate::gamma`],
 //! [`crate::screening`], [`crate::wraps`] and [`crate::estimate`].
 
 use std::time::Instant;
 
 use crate::cycles::{BasisKind, CycleBasis};
+use crate::estimate::{EstimateError, OrientationEstimator};
 use crate::gamma::{GammaModel, SingularError};
-use crate::graph::PoseGraph;
+use crate::graph::{Pose2, PoseGraph};
+use crate::refine::{RefineConfig, Refined};
 use crate::screening::{ConfigError, Hypothesis, Screened, Screener, ScreeningConfig};
 use crate::wraps::{WrapError, WrapSolver};
 
@@ -62,6 +65,60 @@ impl BatchResult {
         WrapSolver::new(&self.basis.cycles, self.edges)?
             .wraps(&self.basis.cycles, &self.screened.gamma(h))
     }
+}
+
+/// The poses of one hypothesis.
+#[derive(Clone, Debug)]
+pub struct Solution {
+    /// The wraps k of every edge.
+    pub wraps: Vec<i64>,
+    /// `Σ_e (θ_j − θ_i − δ_e + 2πk_e)² / σ_e²` of θ* (the hypothesis' χ²).
+    pub chi2_orientation: f64,
+    /// θ* with the least-squares positions.
+    pub linear: Vec<Pose2>,
+    /// SE(2) cost `Σ eᵀΩe` of [`linear`](Self::linear).
+    pub cost_linear: f64,
+    /// The refinement from [`linear`](Self::linear) (its cost after each accepted step).
+    pub refined: Refined,
+    /// Wall time of this solution.
+    pub seconds: f64,
+}
+
+/// Why poses could not be computed.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum SolveError {
+    /// γ → k failed.
+    #[error(transparent)]
+    Wraps(#[from] WrapError),
+    /// A linear system failed.
+    #[error(transparent)]
+    Estimate(#[from] EstimateError),
+}
+
+/// Poses for a hypothesis of a screened graph: wraps, θ* (with the graph's factored
+/// orientation system `orient`), least-squares positions, and `refine` on the SE(2) cost.
+pub fn solve(
+    graph: &PoseGraph,
+    result: &BatchResult,
+    orient: &OrientationEstimator,
+    h: &Hypothesis,
+    refine: &RefineConfig,
+) -> Result<Solution, SolveError> {
+    let t = Instant::now();
+    let wraps = result.wraps(h)?;
+    let theta = orient.orientations(&wraps);
+    let chi2_orientation = orient.cost(&theta, &wraps);
+    let linear = crate::estimate::poses(graph, &theta)?;
+    let cost_linear = crate::refine::cost(graph, &linear);
+    let refined = crate::refine::refine(graph, &linear, refine)?;
+    Ok(Solution {
+        wraps,
+        chi2_orientation,
+        linear,
+        cost_linear,
+        refined,
+        seconds: t.elapsed().as_secs_f64(),
+    })
 }
 
 /// Why the pipeline stopped.

@@ -1,6 +1,7 @@
-//! Orientation estimate for a hypothesis (METHOD.md §5, §8).
+//! Orientation and position estimates for a hypothesis (METHOD.md §5, §8; the positions follow
+//! the paper's reference [2], LAGO).
 //!
-//! For wraps k, the maximum-likelihood orientations are
+//! **Orientations.** For wraps k, the maximum-likelihood orientations are
 //!
 //! ```text
 //! θ* = (Ā P⁻¹ Āᵀ)⁻¹ Ā P⁻¹ (δ − 2πk),      P_θ = (Ā P⁻¹ Āᵀ)⁻¹,
@@ -12,115 +13,87 @@
 //! solve. Marginal variances are one solve per requested node (never a dense inverse). The
 //! cost of an estimate is `χ² = Σ_e (θ_j − θ_i − δ_e + 2πk_e)² / σ_e²`, which equals
 //! `(γ − μ)ᵀ P_γ⁻¹ (γ − μ)` for `γ = Ck` (METHOD.md §2).
+//!
+//! **Positions.** With the orientations fixed at θ*, each edge's measured translation `t_e`
+//! (in the frame of its tail `i`) becomes a linear measurement of `p_j − p_i = R(θ*_i) t_e`;
+//! the positions minimise
+//!
+//! ```text
+//! Σ_e (p_j − p_i − R(θ*_i) t_e)ᵀ R(θ*_i) Ω_t,e R(θ*_i)ᵀ (p_j − p_i − R(θ*_i) t_e),
+//! Ω_t,e = Ω_tt − Ω_tθ Ω_θθ⁻¹ Ω_θt   (the translation's marginal information),
+//! ```
+//!
+//! a sparse 2n × 2n SPD system (anchors at the origin). Covariance approximation: θ* is treated
+//! as exact (the rotated translation keeps the measured covariance rotated into the world
+//! frame; the angle uncertainty it would add, first order in σ_θ·|t|, is neglected) and the
+//! translation's correlation with the angle measurement is marginalised out. This is the linear
+//! initial guess; [`crate::refine`] then minimises the full SE(2) cost from it.
 
 use std::f64::consts::TAU;
 
-use faer::linalg::solvers::Solve;
+use faer::Col;
 use faer::sparse::linalg::solvers::Llt;
-use faer::sparse::{SparseColMat, Triplet};
-use faer::{Col, Side};
 
-use crate::graph::PoseGraph;
+use crate::graph::{Pose2, PoseGraph};
+use crate::tree::SpanningTree;
 
-/// The Laplacian could not be factored.
+mod system;
+
+pub(crate) use system::{ANCHOR, Anchored, NormalEquations, solve};
+
+/// A linear system could not be built or factored.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
-#[error("orientation system: {0}")]
+#[error("linear system: {0}")]
 pub struct EstimateError(pub String);
-
-const ANCHOR: usize = usize::MAX;
 
 /// Factored orientation system of a graph.
 pub struct OrientationEstimator {
-    var_of: Vec<usize>,
+    anchored: Anchored,
     ends: Vec<(usize, usize)>,
     weight: Vec<f64>,
     delta: Vec<f64>,
     llt: Option<Llt<usize, f64>>,
-    anchors: Vec<usize>,
 }
 
 impl OrientationEstimator {
     /// Build and factor the anchored Laplacian; anchors are the first node (index order) of
     /// each connected component.
     pub fn new(graph: &PoseGraph) -> Result<Self, EstimateError> {
-        let (label, count) = graph.components();
-        let mut anchors = vec![ANCHOR; count];
-        for (v, &c) in label.iter().enumerate() {
-            if anchors[c] == ANCHOR {
-                anchors[c] = v;
-            }
-        }
-        let mut var_of = vec![0; graph.node_count()];
-        let mut n = 0;
-        for (v, slot) in var_of.iter_mut().enumerate() {
-            if anchors[label[v]] == v {
-                *slot = ANCHOR;
-            } else {
-                *slot = n;
-                n += 1;
-            }
-        }
-        let ends = graph.endpoints().to_vec();
+        let anchored = Anchored::new(graph);
         let weight: Vec<f64> = graph.edges().iter().map(|e| 1.0 / e.sigma2()).collect();
-        let delta = graph.edges().iter().map(|e| e.delta()).collect();
-        let mut trip = Vec::with_capacity(4 * ends.len());
-        for (&(a, b), &w) in ends.iter().zip(&weight) {
-            let (va, vb) = (var_of[a], var_of[b]);
-            if va != ANCHOR {
-                trip.push(Triplet::new(va, va, w));
-            }
-            if vb != ANCHOR {
-                trip.push(Triplet::new(vb, vb, w));
-            }
-            if va != ANCHOR && vb != ANCHOR {
-                trip.push(Triplet::new(va, vb, -w));
-                trip.push(Triplet::new(vb, va, -w));
-            }
+        let mut ne = NormalEquations::<1>::new(graph, &anchored)?;
+        for (e, &w) in weight.iter().enumerate() {
+            ne.add(e, &[[-1.0]], &[[1.0]], &[[w]], &[0.0]);
         }
-        let llt = if n == 0 {
-            None
-        } else {
-            let lap = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &trip)
-                .map_err(|e| EstimateError(format!("{e:?}")))?;
-            Some(
-                lap.sp_cholesky(Side::Lower)
-                    .map_err(|e| EstimateError(format!("{e:?}")))?,
-            )
-        };
         Ok(Self {
-            var_of,
-            ends,
+            llt: ne.factor(0.0)?,
+            anchored,
+            ends: graph.endpoints().to_vec(),
             weight,
-            delta,
-            llt,
-            anchors,
+            delta: graph.edges().iter().map(|e| e.delta()).collect(),
         })
     }
 
     /// The anchor node of each component.
     pub fn anchors(&self) -> &[usize] {
-        &self.anchors
+        &self.anchored.anchors
     }
 
     /// θ* for wraps k (one entry per node, anchors 0; unwrapped).
     pub fn orientations(&self, wraps: &[i64]) -> Vec<f64> {
-        let nodes = self.var_of.len();
-        let Some(llt) = &self.llt else {
-            return vec![0.0; nodes];
-        };
-        let n = self.var_of.iter().filter(|&&v| v != ANCHOR).count();
-        let mut rhs = Col::<f64>::zeros(n);
+        let var_of = &self.anchored.var_of;
+        let mut rhs = Col::<f64>::zeros(self.anchored.free);
         for (e, &(a, b)) in self.ends.iter().enumerate() {
             let y = self.weight[e] * (self.delta[e] - TAU * wraps[e] as f64);
-            if self.var_of[b] != ANCHOR {
-                rhs[self.var_of[b]] += y;
+            if var_of[b] != ANCHOR {
+                rhs[var_of[b]] += y;
             }
-            if self.var_of[a] != ANCHOR {
-                rhs[self.var_of[a]] -= y;
+            if var_of[a] != ANCHOR {
+                rhs[var_of[a]] -= y;
             }
         }
-        let x = llt.solve(&rhs);
-        self.var_of
+        let x = solve(self.llt.as_ref(), &rhs);
+        var_of
             .iter()
             .map(|&v| if v == ANCHOR { 0.0 } else { x[v] })
             .collect()
@@ -140,61 +113,95 @@ impl OrientationEstimator {
 
     /// Marginal variance `(P_θ)_vv` of node v (0 for an anchor): one sparse solve.
     pub fn variance(&self, node: usize) -> f64 {
-        let (Some(llt), Some(&v)) = (&self.llt, self.var_of.get(node)) else {
+        let Some(&v) = self.anchored.var_of.get(node) else {
             return 0.0;
         };
-        if v == ANCHOR {
+        if v == ANCHOR || self.llt.is_none() {
             return 0.0;
         }
-        let n = self.var_of.iter().filter(|&&x| x != ANCHOR).count();
-        let mut e = Col::<f64>::zeros(n);
+        let mut e = Col::<f64>::zeros(self.anchored.free);
         e[v] = 1.0;
-        llt.solve(&e)[v]
+        solve(self.llt.as_ref(), &e)[v]
     }
 }
 
-/// Positions composed from the measured translations along a spanning forest (breadth first
-/// from each component's first node, edges in insertion order), rotated by the given
-/// orientations: `p_j = p_i + R(θ_i) t_ij`. The anchors sit at the origin. This is the
-/// "odometry composed with the current orientations" view; it is not a least-squares
-/// position estimate.
-pub fn composed_positions(graph: &PoseGraph, theta: &[f64]) -> Vec<(f64, f64)> {
-    let n = graph.node_count();
-    let mut adj: Vec<Vec<usize>> = vec![Vec::new(); n];
-    for (e, &(a, b)) in graph.endpoints().iter().enumerate() {
-        adj[a].push(e);
-        adj[b].push(e);
+/// Least-squares positions for fixed orientations θ (see the module docs); anchors at the
+/// origin.
+pub fn positions(graph: &PoseGraph, theta: &[f64]) -> Result<Vec<(f64, f64)>, EstimateError> {
+    let anchored = Anchored::new(graph);
+    let mut ne = NormalEquations::<2>::new(graph, &anchored)?;
+    const MINUS: [[f64; 2]; 2] = [[-1.0, 0.0], [0.0, -1.0]];
+    const PLUS: [[f64; 2]; 2] = [[1.0, 0.0], [0.0, 1.0]];
+    for (e, (edge, &(a, _))) in graph.edges().iter().zip(graph.endpoints()).enumerate() {
+        let m = edge.measurement();
+        let (s, c) = theta[a].sin_cos();
+        let t = [c * m.x - s * m.y, s * m.x + c * m.y];
+        let o = edge.information().translation_information();
+        // R Ω_t Rᵀ.
+        let r = [[c, -s], [s, c]];
+        let ro = [
+            [
+                r[0][0] * o[0][0] + r[0][1] * o[1][0],
+                r[0][0] * o[0][1] + r[0][1] * o[1][1],
+            ],
+            [
+                r[1][0] * o[0][0] + r[1][1] * o[1][0],
+                r[1][0] * o[0][1] + r[1][1] * o[1][1],
+            ],
+        ];
+        let w = [
+            [
+                ro[0][0] * r[0][0] + ro[0][1] * r[0][1],
+                ro[0][0] * r[1][0] + ro[0][1] * r[1][1],
+            ],
+            [
+                ro[1][0] * r[0][0] + ro[1][1] * r[0][1],
+                ro[1][0] * r[1][0] + ro[1][1] * r[1][1],
+            ],
+        ];
+        // Residual at p = 0.
+        ne.add(e, &MINUS, &PLUS, &w, &[-t[0], -t[1]]);
     }
-    let mut pos = vec![(0.0, 0.0); n];
-    let mut seen = vec![false; n];
-    let mut queue = std::collections::VecDeque::new();
-    for root in 0..n {
-        if seen[root] {
-            continue;
-        }
-        seen[root] = true;
-        queue.push_back(root);
-        while let Some(v) = queue.pop_front() {
-            for &e in &adj[v] {
-                let (a, b) = graph.endpoints()[e];
-                let w = if a == v { b } else { a };
-                if seen[w] {
-                    continue;
-                }
-                seen[w] = true;
-                let m = graph.edges()[e].measurement();
-                let (s, c) = theta[a].sin_cos();
-                let (tx, ty) = (c * m.x - s * m.y, s * m.x + c * m.y);
-                pos[w] = if w == b {
-                    (pos[a].0 + tx, pos[a].1 + ty)
-                } else {
-                    (pos[b].0 - tx, pos[b].1 - ty)
-                };
-                queue.push_back(w);
+    let llt = ne.factor(0.0)?;
+    let x = solve(llt.as_ref(), &ne.rhs());
+    Ok(anchored
+        .var_of
+        .iter()
+        .map(|&v| {
+            if v == ANCHOR {
+                (0.0, 0.0)
+            } else {
+                (x[2 * v], x[2 * v + 1])
             }
+        })
+        .collect())
+}
+
+/// Poses from orientations θ: θ with the least-squares [`positions`].
+pub fn poses(graph: &PoseGraph, theta: &[f64]) -> Result<Vec<Pose2>, EstimateError> {
+    Ok(positions(graph, theta)?
+        .into_iter()
+        .zip(theta)
+        .map(|((x, y), &t)| Pose2::new(x, y, t))
+        .collect())
+}
+
+/// Dead reckoning: the measured relative poses composed along the odometric spanning tree
+/// ([`SpanningTree::odometric`]) from each component's anchor at the origin — the start of
+/// an iterative solver that knows nothing of the loops.
+pub fn odometry_poses(graph: &PoseGraph) -> Vec<Pose2> {
+    let tree = SpanningTree::odometric(graph);
+    let mut order: Vec<usize> = (0..graph.node_count()).collect();
+    order.sort_by_key(|&v| tree.depth[v]);
+    let mut pose = vec![Pose2::default(); graph.node_count()];
+    for v in order {
+        if let Some((p, e)) = tree.parent[v] {
+            let z = graph.edges()[e].measurement();
+            let (a, _) = graph.endpoints()[e];
+            pose[v] = pose[p].compose(if a == p { z } else { z.inverse() });
         }
     }
-    pos
+    pose
 }
 
 #[cfg(test)]
@@ -203,16 +210,22 @@ mod tests {
     use crate::sim::{SimConfig, simulate};
 
     #[test]
-    fn composed_positions_follow_the_truth_for_tiny_noise() {
+    fn positions_and_odometry_follow_the_truth_for_tiny_noise() {
         let mut c = SimConfig::new(200, 4);
         c.sigma_xy = 1e-7;
         c.sigma_theta = 1e-7;
         let w = simulate(&c).unwrap();
         let theta: Vec<f64> = w.truth.poses.iter().map(|p| p.theta).collect();
-        let pos = composed_positions(&w.graph, &theta);
         let p0 = w.truth.poses[0];
-        for (p, t) in pos.iter().zip(&w.truth.poses) {
-            assert!((p.0 - (t.x - p0.x)).abs() < 1e-4 && (p.1 - (t.y - p0.y)).abs() < 1e-4);
+        let pos = positions(&w.graph, &theta).unwrap();
+        let odo = odometry_poses(&w.graph);
+        // The truth relative to node 0, in node 0's frame (the anchor's frame).
+        for ((p, o), t) in pos.iter().zip(&odo).zip(&w.truth.poses) {
+            let rel = p0.between(*t);
+            let (s, c) = p0.theta.sin_cos();
+            let world = (c * rel.x - s * rel.y, s * rel.x + c * rel.y);
+            assert!((p.0 - world.0).abs() < 1e-4 && (p.1 - world.1).abs() < 1e-4);
+            assert!((o.x - rel.x).abs() < 1e-4 && (o.y - rel.y).abs() < 1e-4);
         }
     }
 }

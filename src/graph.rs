@@ -43,6 +43,34 @@ impl Pose2 {
     fn is_finite(&self) -> bool {
         self.x.is_finite() && self.y.is_finite() && self.theta.is_finite()
     }
+
+    /// `self ⊕ z`: the pose reached from `self` by the relative pose `z` (angles add, not
+    /// wrapped). Trigonometry from `libm`, so results are the same on every platform.
+    pub fn compose(self, z: Pose2) -> Pose2 {
+        let (s, c) = (libm::sin(self.theta), libm::cos(self.theta));
+        Pose2::new(
+            self.x + c * z.x - s * z.y,
+            self.y + s * z.x + c * z.y,
+            self.theta + z.theta,
+        )
+    }
+
+    /// `self⁻¹`, the relative pose back.
+    pub fn inverse(self) -> Pose2 {
+        let (s, c) = (libm::sin(self.theta), libm::cos(self.theta));
+        Pose2::new(
+            -(c * self.x + s * self.y),
+            s * self.x - c * self.y,
+            -self.theta,
+        )
+    }
+
+    /// `self⁻¹ ⊕ b`: the pose `b` in the frame of `self` (angle difference not wrapped).
+    pub fn between(self, b: Pose2) -> Pose2 {
+        let (s, c) = (libm::sin(self.theta), libm::cos(self.theta));
+        let (dx, dy) = (b.x - self.x, b.y - self.y);
+        Pose2::new(c * dx + s * dy, -s * dx + c * dy, b.theta - self.theta)
+    }
 }
 
 /// The 3×3 symmetric information matrix of an edge, in `(x, y, θ)` order, stored as its
@@ -90,6 +118,17 @@ impl Information {
     /// Whether Ω is symmetric positive definite (it is symmetric by construction).
     pub fn is_positive_definite(&self) -> bool {
         self.cholesky().is_some()
+    }
+
+    /// The information of the translation alone, `(Σ_tt)⁻¹ = Ω_tt − Ω_tθ Ω_θθ⁻¹ Ω_θt` (the
+    /// Schur complement of the angle; `Σ = Ω⁻¹`): the weight of a translation measurement
+    /// whose angle error is marginalised out. `Ω_tt` when Ω is diagonal.
+    pub fn translation_information(&self) -> [[f64; 2]; 2] {
+        let [a, b, c, d, e, f] = self.0;
+        [
+            [a - c * c / f, b - c * e / f],
+            [b - c * e / f, d - e * e / f],
+        ]
     }
 
     /// The angle variance `σ² = (Ω⁻¹)_θθ`, if Ω is positive definite.

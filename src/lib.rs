@@ -14,7 +14,9 @@
 //! - [`gamma`]: the Gaussian model of the cycle integers γ and its sequential conditioning;
 //! - [`screening`]: first (per-cycle) and second (joint) screening, success-rate bound;
 //! - [`wraps`]: from γ to the wraps k of every edge;
-//! - [`estimate`]: orientations θ* for a hypothesis (sparse Cholesky of the Laplacian);
+//! - [`estimate`]: orientations θ* for a hypothesis (sparse Cholesky of the Laplacian) and
+//!   least-squares positions given them;
+//! - [`refine`]: Levenberg–Marquardt refinement of the full SE(2) cost;
 //! - [`batch`]: the paper's pipeline, driving the modules above;
 //! - [`online`]: the online estimator, driving the same modules one edge at a time;
 //! - [`log`]: MCAP recording and bit-exact replay of online runs.
@@ -37,6 +39,7 @@ pub mod graph;
 pub mod io;
 pub mod log;
 pub mod online;
+pub mod refine;
 pub mod screening;
 pub mod sim;
 pub mod tree;

@@ -10,7 +10,7 @@
 //! | `/so2lin/estimate` | orientation snapshots every N steps and at the end |
 //! | `/so2lin/log` | human-readable events as `foxglove.Log` |
 //! | `/graph` | `foxglove.SceneUpdate`: odometry and loop-closure edges as line lists, ambiguous loops highlighted (with each snapshot) |
-//! | `/poses` | `foxglove.PosesInFrame` in frame `map`: odometry composed with the current orientations (with each snapshot) |
+//! | `/poses` | `foxglove.PosesInFrame` in frame `map`: the current poses ([`OnlineEstimator::poses`]: orientations with least-squares positions), with each snapshot |
 //!
 //! A metadata record `so2lin` holds the version, configuration, source and
 //! [`SCHEMA_VERSION`]. Log time is the step index (edges carry no timestamps), so a log plays

@@ -522,6 +522,14 @@ impl OnlineEstimator {
         Ok(&self.theta)
     }
 
+    /// Current poses of all nodes (dense index order): the current orientations with their
+    /// least-squares positions ([`crate::estimate::poses`]; anchors at the origin). Computed on
+    /// demand: one sparse 2n × 2n solve.
+    pub fn poses(&mut self) -> Result<Vec<crate::graph::Pose2>, OnlineError> {
+        let theta = self.orientations()?.to_vec();
+        Ok(crate::estimate::poses(&self.graph, &theta)?)
+    }
+
     /// Current orientation of a node (None for an unknown node).
     pub fn orientation(&mut self, node: NodeId) -> Result<Option<f64>, OnlineError> {
         let Some(v) = self.graph.node_index(node) else {

@@ -252,21 +252,10 @@ fn true_pose((x, y): (i64, i64), dir: i64) -> Pose2 {
     Pose2::new(x as f64, y as f64, wrap_angle(dir as f64 * FRAC_PI_2))
 }
 
-/// `a ⊕ z`: the pose reached from `a` by the relative pose `z` (heading wrapped).
+/// `a ⊕ z` with the heading wrapped (the simulated robot's pose).
 pub fn compose(a: Pose2, z: Pose2) -> Pose2 {
-    let (s, c) = (libm::sin(a.theta), libm::cos(a.theta));
-    Pose2::new(
-        a.x + c * z.x - s * z.y,
-        a.y + s * z.x + c * z.y,
-        wrap_angle(a.theta + z.theta),
-    )
-}
-
-/// The relative pose of `b` in the frame of `a` (angle difference not wrapped).
-pub fn relative(a: Pose2, b: Pose2) -> Pose2 {
-    let (s, c) = (libm::sin(a.theta), libm::cos(a.theta));
-    let (dx, dy) = (b.x - a.x, b.y - a.y);
-    Pose2::new(c * dx + s * dy, -s * dx + c * dy, b.theta - a.theta)
+    let p = a.compose(z);
+    Pose2::new(p.x, p.y, wrap_angle(p.theta))
 }
 
 /// Add a noisy measurement `from → to` with its ground truth; returns the measurement.
@@ -278,7 +267,7 @@ fn add_measurement(
     from: usize,
     to: usize,
 ) -> Result<Pose2, SimError> {
-    let z = relative(truth.poses[from], truth.poses[to]);
+    let z = truth.poses[from].between(truth.poses[to]);
     let noise = Pose2::new(
         c.sigma_xy * rng.normal(),
         c.sigma_xy * rng.normal(),
@@ -331,7 +320,7 @@ mod tests {
             let rhs = e.delta() - n.theta - TAU * w.truth.wraps[k] as f64;
             assert!((lhs - rhs).abs() < 1e-12, "edge {k}: {lhs} vs {rhs}");
             // Translation: measurement − noise is the true relative translation.
-            let z = relative(ti, tj);
+            let z = ti.between(tj);
             let m = e.measurement();
             assert!((m.x - n.x - z.x).abs() < 1e-12 && (m.y - n.y - z.y).abs() < 1e-12);
             if e.is_odometric() {

@@ -214,7 +214,10 @@ fn a_failing_sink_is_reported_and_never_fails_a_step() {
     assert!(err.contains("disk full"), "{err}");
     let rec = logged.detach_recorder().unwrap();
     assert!(rec.finish(&mut logged).is_err());
-    assert_eq!(plain.orientations().unwrap(), logged.orientations().unwrap());
+    assert_eq!(
+        plain.orientations().unwrap(),
+        logged.orientations().unwrap()
+    );
 }
 
 #[test]

@@ -95,6 +95,9 @@ struct Color {
 /// An empty list of any of the schema's object types.
 const NONE: [(); 0] = [];
 
+/// Segments as endpoint index pairs, with the positions they index.
+type Segments<'a> = (&'a [(usize, usize)], &'a [(f64, f64)]);
+
 /// `foxglove.LinePrimitive` of type LINE_LIST (2): consecutive point pairs are segments.
 #[derive(Serialize)]
 struct LineList<'a> {
@@ -104,7 +107,7 @@ struct LineList<'a> {
     thickness: f64,
     scale_invariant: bool,
     #[serde(serialize_with = "segments")]
-    points: (&'a [(usize, usize)], &'a [(f64, f64)]),
+    points: Segments<'a>,
     color: Color,
     colors: [(); 0],
     indices: [(); 0],
@@ -112,7 +115,7 @@ struct LineList<'a> {
 
 /// Serialise segments `(a, b)` as the points `pos[a], pos[b], …`.
 fn segments<S: serde::Serializer>(
-    (ends, pos): &(&[(usize, usize)], &[(f64, f64)]),
+    (ends, pos): &Segments<'_>,
     s: S,
 ) -> Result<S::Ok, S::Error> {
     s.collect_seq(

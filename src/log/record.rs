@@ -64,13 +64,11 @@ struct Snapshot {
 
 impl Snapshot {
     fn of(est: &mut OnlineEstimator) -> Result<Self, LogError> {
-        let theta = est
-            .orientations()
-            .map_err(|e| LogError::Format(e.to_string()))?
-            .to_vec();
+        let poses = est.poses().map_err(|e| LogError::Format(e.to_string()))?;
+        let theta = poses.iter().map(|p| p.theta).collect();
+        let pos = poses.iter().map(|p| (p.x, p.y)).collect();
         let g = est.graph();
         let nodes = g.nodes().iter().map(|n| n.id).collect();
-        let pos = crate::estimate::composed_positions(g, &theta);
         let flagged: std::collections::BTreeSet<usize> = est
             .ambiguous()
             .iter()

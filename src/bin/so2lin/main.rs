@@ -11,6 +11,7 @@ use serde_json::json;
 
 mod replay;
 mod screen;
+mod solve;
 mod stream;
 
 use so2lin::batch::BatchConfig;
@@ -138,6 +139,40 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Screening, orientations, least-squares positions and SE(2) refinement: full poses.
+    Solve {
+        /// Graph file (g2o or TORO).
+        file: PathBuf,
+        /// Cycle basis.
+        #[arg(long, value_enum, default_value = "incremental")]
+        basis: BasisKind,
+        #[command(flatten)]
+        screening: ScreeningArgs,
+        /// Family-wise level: per-cycle α/ℓ (Bonferroni).
+        #[arg(long)]
+        family_wise: bool,
+        /// Refinement: at most this many Levenberg–Marquardt iterations (0: linear poses only).
+        #[arg(long, default_value_t = 5)]
+        refine: usize,
+        /// Stop refining once a step lowers the cost by less than this fraction.
+        #[arg(long, default_value_t = 1e-6)]
+        tolerance: f64,
+        /// Solve every surviving hypothesis and rank them by refined cost.
+        #[arg(long)]
+        all_hypotheses: bool,
+        /// Also run the same refinement from dead-reckoned odometry (the local-minimum baseline).
+        #[arg(long)]
+        odometry: bool,
+        /// Write the best refined poses and the edges as g2o.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Information-matrix order of edge lines (default: detect).
+        #[arg(long, value_enum, default_value = "auto")]
+        order: OrderArg,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
     /// Feed a file's edges in file order through the online estimator, timing each step.
     Stream {
         /// Graph file (g2o or TORO).
@@ -239,6 +274,34 @@ fn main() -> ExitCode {
             })
         }
         Command::Replay { log, verify, json } => replay::run(&log, verify, json),
+        Command::Solve {
+            file,
+            basis,
+            screening,
+            family_wise,
+            refine,
+            tolerance,
+            all_hypotheses,
+            odometry,
+            out,
+            order,
+            json,
+        } => solve::run(solve::SolveArgs {
+            file: &file,
+            order: order.into(),
+            config: BatchConfig {
+                basis,
+                screening: screening.config(family_wise),
+            },
+            refine: so2lin::refine::RefineConfig {
+                iterations: refine,
+                relative_decrease: tolerance,
+            },
+            all_hypotheses,
+            odometry,
+            out: out.as_deref(),
+            json,
+        }),
         Command::Screen {
             file,
             basis,

@@ -1,0 +1,164 @@
+//! `so2lin solve`: screening, orientations, positions and SE(2) refinement of a file.
+
+use std::io::Write;
+use std::path::Path;
+use std::time::Instant;
+
+use serde_json::json;
+
+use so2lin::batch::{self, BatchConfig, BatchResult, Solution};
+use so2lin::estimate::{OrientationEstimator, odometry_poses};
+use so2lin::graph::PoseGraph;
+use so2lin::io::InfoOrder;
+use so2lin::refine::{self, RefineConfig, Refined};
+
+/// Options of the `solve` command.
+pub struct SolveArgs<'a> {
+    pub file: &'a Path,
+    pub order: InfoOrder,
+    pub config: BatchConfig,
+    pub refine: RefineConfig,
+    pub all_hypotheses: bool,
+    pub odometry: bool,
+    pub out: Option<&'a Path>,
+    pub json: bool,
+}
+
+/// Every requested hypothesis solved, best (lowest refined cost) first, with its index in the
+/// screening's χ² order.
+pub struct Solved {
+    pub screening: BatchResult,
+    pub solutions: Vec<(usize, Solution)>,
+    pub screen_seconds: f64,
+}
+
+/// Screen a graph and solve its best hypothesis, or all of them.
+pub fn solve_graph(
+    graph: &PoseGraph,
+    config: &BatchConfig,
+    refine: &RefineConfig,
+    all: bool,
+) -> Result<Solved, String> {
+    let t = Instant::now();
+    let screening = batch::screen(graph, config).map_err(|e| e.to_string())?;
+    let screen_seconds = t.elapsed().as_secs_f64();
+    let orient = OrientationEstimator::new(graph).map_err(|e| e.to_string())?;
+    let take = if all { screening.hypotheses.len() } else { 1 };
+    let mut solutions = Vec::with_capacity(take);
+    for (i, h) in screening.hypotheses.iter().take(take).enumerate() {
+        let s = batch::solve(graph, &screening, &orient, h, refine).map_err(|e| e.to_string())?;
+        solutions.push((i, s));
+    }
+    solutions.sort_by(|a, b| a.1.refined.cost().total_cmp(&b.1.refined.cost()));
+    Ok(Solved {
+        screening,
+        solutions,
+        screen_seconds,
+    })
+}
+
+pub fn run(args: SolveArgs) -> Result<(), String> {
+    let t0 = Instant::now();
+    let (graph, _) = crate::load(args.file, args.order)?;
+    let read_seconds = t0.elapsed().as_secs_f64();
+    let solved = solve_graph(&graph, &args.config, &args.refine, args.all_hypotheses)?;
+    let total = t0.elapsed().as_secs_f64();
+    let baseline = args.odometry.then(|| {
+        let t = Instant::now();
+        let start = odometry_poses(&graph);
+        refine::refine(&graph, &start, &args.refine).map(|r| (r, t.elapsed().as_secs_f64()))
+    });
+    let baseline = baseline.transpose().map_err(|e| e.to_string())?;
+    if let (Some(path), Some((_, best))) = (args.out, solved.solutions.first()) {
+        let err = |e: std::io::Error| format!("{}: {e}", path.display());
+        let file = std::fs::File::create(path).map_err(err)?;
+        let mut w = std::io::BufWriter::new(file);
+        so2lin::io::write_g2o(&mut w, &graph, Some(&best.refined.poses)).map_err(err)?;
+        w.flush().map_err(err)?;
+    }
+    let r = &solved.screening;
+    if args.json {
+        let hyps: Vec<_> = solved
+            .solutions
+            .iter()
+            .map(|(i, s)| {
+                json!({
+                    "index": i,
+                    "chi2_orientation": s.chi2_orientation,
+                    "cost_linear": s.cost_linear,
+                    "cost_refined": s.refined.cost(),
+                    "refine_costs": s.refined.costs,
+                    "iterations": s.refined.iterations,
+                    "converged": s.refined.converged,
+                    "seconds": s.seconds,
+                })
+            })
+            .collect();
+        let v = json!({
+            "file": args.file.display().to_string(),
+            "nodes": graph.node_count(),
+            "edges": graph.edge_count(),
+            "basis": r.basis.kind,
+            "hypotheses_screened": r.hypotheses.len(),
+            "outcome": format!("{:?}", r.outcome),
+            "hypotheses": hyps,
+            "best": solved.solutions.first().map(|(i, _)| i),
+            "odometry": baseline.as_ref().map(|(b, s)| odometry_json(b, *s)),
+            "refine": args.refine,
+            "read_seconds": read_seconds,
+            "screen_seconds": solved.screen_seconds,
+            "total_seconds": total,
+        });
+        println!("{v}");
+        return Ok(());
+    }
+    println!(
+        "{}: {} nodes, {} edges; {:?} basis, {} hypotheses after screening ({:.1} ms read, {:.1} ms screening)",
+        args.file.display(),
+        graph.node_count(),
+        graph.edge_count(),
+        r.basis.kind,
+        r.hypotheses.len(),
+        1e3 * read_seconds,
+        1e3 * solved.screen_seconds
+    );
+    println!(
+        "{:>4} {:>14} {:>16} {:>16} {:>6} {:>9}",
+        "hyp", "χ² orient.", "cost linear", "cost refined", "iters", "ms"
+    );
+    for (i, s) in &solved.solutions {
+        println!(
+            "{:>4} {:>14.4} {:>16.6e} {:>16.6e} {:>6} {:>9.1}",
+            i,
+            s.chi2_orientation,
+            s.cost_linear,
+            s.refined.cost(),
+            s.refined.iterations,
+            1e3 * s.seconds
+        );
+    }
+    if let Some((i, _)) = solved.solutions.first() {
+        println!("best: hypothesis {i} (lowest refined cost)");
+    }
+    if let Some((b, s)) = &baseline {
+        println!(
+            "odometry start, same refinement: cost {:.6e} → {:.6e} ({} iterations, {:.1} ms)",
+            b.costs.first().copied().unwrap_or(f64::NAN),
+            b.cost(),
+            b.iterations,
+            1e3 * s
+        );
+    }
+    println!("total {:.1} ms", 1e3 * total);
+    Ok(())
+}
+
+fn odometry_json(b: &Refined, seconds: f64) -> serde_json::Value {
+    json!({
+        "cost_initial": b.costs.first(),
+        "cost_refined": b.cost(),
+        "refine_costs": b.costs,
+        "iterations": b.iterations,
+        "seconds": seconds,
+    })
+}
