@@ -1,5 +1,6 @@
 //! Each stage of the batch pipeline (`screen --basis incremental`) on M3500 and INTEL when
-//! the datasets are present, on a simulated 3500-pose world otherwise.
+//! the datasets are present, on a simulated 3500-pose world otherwise; and the whole `solve`
+//! (read, screen, orientations, positions, 5 refinement iterations) on M3500 and city10000.
 //!
 //! `cargo bench --bench batch`
 
@@ -7,29 +8,34 @@ use std::hint::black_box;
 use std::path::PathBuf;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use so2lin::batch::{BatchConfig, screen};
+use so2lin::batch::{BatchConfig, screen, solve};
 use so2lin::cycles::{BasisKind, CycleBasis};
 use so2lin::estimate::OrientationEstimator;
 use so2lin::graph::PoseGraph;
 use so2lin::io::{ReadOptions, read_graph_from, write_g2o};
+use so2lin::refine::RefineConfig;
 use so2lin::screening::ScreeningConfig;
 use so2lin::sim::{SimConfig, simulate};
 
-/// (name, file bytes) of the benchmark inputs.
-fn inputs() -> Vec<(String, Vec<u8>)> {
+/// (name, file bytes) of those of `names` found in the datasets folder.
+fn datasets(names: &[&str]) -> Vec<(String, Vec<u8>)> {
     let dir = std::env::var_os("SO2LIN_DATASETS")
         .map(PathBuf::from)
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/datasets"));
-    let found: Vec<(String, Vec<u8>)> = ["M3500.g2o", "intel.g2o"]
+    names
         .iter()
         .filter_map(|n| std::fs::read(dir.join(n)).ok().map(|b| (n.to_string(), b)))
-        .collect();
+        .collect()
+}
+
+/// (name, file bytes) of the benchmark inputs.
+fn inputs() -> Vec<(String, Vec<u8>)> {
+    let found = datasets(&["M3500.g2o", "intel.g2o"]);
     if !found.is_empty() {
         return found;
     }
     eprintln!(
-        "datasets not found in {}: benchmarking a simulated world",
-        dir.display()
+        "datasets not found (SO2LIN_DATASETS or ../shared/datasets): benchmarking a simulated world"
     );
     let world = simulate(&SimConfig::new(3500, 1)).expect("valid config");
     let mut bytes = Vec::new();
@@ -75,5 +81,30 @@ fn bench(c: &mut Criterion) {
     }
 }
 
-criterion_group!(benches, bench);
+/// The whole `solve` command: read, screen, θ*, positions, 5 refinement iterations.
+fn bench_solve(c: &mut Criterion) {
+    let mut inputs = datasets(&["M3500.g2o", "city10000.g2o"]);
+    if inputs.is_empty() {
+        inputs = self::inputs();
+    }
+    let mut group = c.benchmark_group("solve");
+    group.sample_size(10);
+    let refine = RefineConfig::default();
+    for (name, bytes) in &inputs {
+        group.bench_function(name.as_str(), |b| {
+            b.iter(|| {
+                let g = read(black_box(bytes));
+                let r = screen(&g, &BatchConfig::default()).expect("screens");
+                let orient = OrientationEstimator::new(&g).expect("factors");
+                solve(&g, &r, &orient, &r.hypotheses[0], &refine)
+                    .expect("solves")
+                    .refined
+                    .cost()
+            })
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench, bench_solve);
 criterion_main!(benches);

@@ -822,7 +822,11 @@ mod tests {
                     (0..3).filter(|&x| x != i).collect(),
                 );
                 let v = m(r[0], s[0]) * m(r[1], s[1]) - m(r[0], s[1]) * m(r[1], s[0]);
-                if (i + j).is_multiple_of(2) { v / det } else { -v / det }
+                if (i + j).is_multiple_of(2) {
+                    v / det
+                } else {
+                    -v / det
+                }
             };
             [
                 [c(0, 0), c(0, 1), c(0, 2)],

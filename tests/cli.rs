@@ -97,7 +97,14 @@ fn bad_input_exits_nonzero_with_one_line() {
 
 #[test]
 fn demo_runs() {
-    let out = so2lin().args(["demo", "--poses", "300"]).output().unwrap();
+    let log = scratch("demo.mcap");
+    let figure = log.with_extension("svg");
+    let _ = std::fs::remove_file(&figure);
+    let out = so2lin()
+        .args(["demo", "--poses", "300", "--log"])
+        .arg(&log)
+        .output()
+        .unwrap();
     assert!(
         out.status.success(),
         "{}",
@@ -109,6 +116,110 @@ fn demo_runs() {
         text.contains("batch screening") && text.contains("success probability"),
         "{text}"
     );
+    assert!(text.contains("poses: SE(2) cost"), "{text}");
+    let svg = std::fs::read_to_string(&figure).unwrap();
+    assert!(
+        svg.starts_with("<svg") && svg.contains("<polyline"),
+        "{svg}"
+    );
+}
+
+#[test]
+fn solve_json_ranks_hypotheses_and_writes_the_refined_graph() {
+    let file = simulated(
+        "solve.g2o",
+        &["--poses", "400", "--seed", "2", "--sigma-theta", "0.25"],
+    );
+    let out = scratch("solved.g2o");
+    let v = run_json(
+        [
+            "solve",
+            file.to_str().unwrap(),
+            "--json",
+            "--all-hypotheses",
+            "--odometry",
+            "--refine",
+            "8",
+            "--out",
+            out.to_str().unwrap(),
+        ]
+        .iter(),
+    );
+    let hyps = v["hypotheses"].as_array().unwrap();
+    assert_eq!(
+        hyps.len() as u64,
+        v["hypotheses_screened"].as_u64().unwrap()
+    );
+    let costs: Vec<f64> = hyps
+        .iter()
+        .map(|h| h["cost_refined"].as_f64().unwrap())
+        .collect();
+    assert!(
+        costs.windows(2).all(|w| w[0] <= w[1]),
+        "ranked by cost: {costs:?}"
+    );
+    for h in hyps {
+        for key in ["chi2_orientation", "cost_linear", "cost_refined", "seconds"] {
+            assert!(h[key].is_number(), "missing {key}");
+        }
+        assert!(h["cost_refined"].as_f64().unwrap() <= h["cost_linear"].as_f64().unwrap());
+    }
+    assert_eq!(v["best"], hyps[0]["index"]);
+    let odo = v["odometry"]["cost_refined"].as_f64().unwrap();
+    assert!(
+        costs[0] <= odo * (1.0 + 1e-6),
+        "{} vs odometry {odo}",
+        costs[0]
+    );
+    // The written graph holds the refined poses: its vertices cost what solve reported.
+    let (g, _) = so2lin::io::read_graph(&out, Default::default()).unwrap();
+    let poses: Vec<so2lin::Pose2> = g.nodes().iter().map(|n| n.initial.unwrap()).collect();
+    let c = so2lin::refine::cost(&g, &poses);
+    assert!(
+        (c - costs[0]).abs() <= 1e-9 * costs[0],
+        "{c} vs {}",
+        costs[0]
+    );
+}
+
+#[test]
+fn plot_renders_a_png_of_the_requested_size_and_plots_logs() {
+    let file = simulated("plot.g2o", &["--poses", "300", "--seed", "4"]);
+    let png = scratch("plot.png");
+    let st = so2lin()
+        .arg("plot")
+        .arg(&file)
+        .args(["--width", "640", "--height", "480", "--out"])
+        .arg(&png)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let img = image::open(&png).unwrap().to_rgb8();
+    assert_eq!(img.dimensions(), (640, 480));
+    let first = *img.get_pixel(0, 0);
+    let drawn = img.pixels().filter(|&&p| p != first).count();
+    assert!(drawn > 1000, "only {drawn} pixels drawn");
+    // A log replays into the same kind of figure; anything but .svg/.png is refused.
+    let log = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("logs/sim300-seed2-noisy.mcap");
+    let svg = scratch("log.svg");
+    let st = so2lin()
+        .arg("plot")
+        .arg(&log)
+        .arg("--all-hypotheses")
+        .arg("--out")
+        .arg(&svg)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    assert!(std::fs::read_to_string(&svg).unwrap().contains("<svg"));
+    let out = so2lin()
+        .arg("plot")
+        .arg(&log)
+        .args(["--out", "x.gif"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains(".svg or .png"));
 }
 
 #[test]

@@ -114,10 +114,7 @@ struct LineList<'a> {
 }
 
 /// Serialise segments `(a, b)` as the points `pos[a], pos[b], …`.
-fn segments<S: serde::Serializer>(
-    (ends, pos): &Segments<'_>,
-    s: S,
-) -> Result<S::Ok, S::Error> {
+fn segments<S: serde::Serializer>((ends, pos): &Segments<'_>, s: S) -> Result<S::Ok, S::Error> {
     s.collect_seq(
         ends.iter()
             .flat_map(|&(a, b)| [Point::planar(pos[a]), Point::planar(pos[b])]),

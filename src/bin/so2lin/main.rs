@@ -9,6 +9,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
+mod plot;
 mod replay;
 mod screen;
 mod solve;
@@ -173,6 +174,34 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Plot the estimated trajectory of a graph file or an MCAP log (one panel per hypothesis).
+    Plot {
+        /// Graph file (g2o or TORO) or so2lin MCAP log.
+        input: PathBuf,
+        /// Output image, .svg or .png.
+        #[arg(long)]
+        out: PathBuf,
+        /// One panel per surviving hypothesis (default: the best only).
+        #[arg(long)]
+        all_hypotheses: bool,
+        /// Image width in pixels.
+        #[arg(long, default_value_t = 1200)]
+        width: u32,
+        /// Image height in pixels.
+        #[arg(long, default_value_t = 900)]
+        height: u32,
+        /// Cycle basis (graph files).
+        #[arg(long, value_enum, default_value = "incremental")]
+        basis: BasisKind,
+        #[command(flatten)]
+        screening: ScreeningArgs,
+        /// Refinement iterations.
+        #[arg(long, default_value_t = 5)]
+        refine: usize,
+        /// Information-matrix order of edge lines (default: detect).
+        #[arg(long, value_enum, default_value = "auto")]
+        order: OrderArg,
+    },
     /// Feed a file's edges in file order through the online estimator, timing each step.
     Stream {
         /// Graph file (g2o or TORO).
@@ -274,6 +303,31 @@ fn main() -> ExitCode {
             })
         }
         Command::Replay { log, verify, json } => replay::run(&log, verify, json),
+        Command::Plot {
+            input,
+            out,
+            all_hypotheses,
+            width,
+            height,
+            basis,
+            screening,
+            refine,
+            order,
+        } => plot::run(plot::PlotArgs {
+            input: &input,
+            out: &out,
+            order: order.into(),
+            config: BatchConfig {
+                basis,
+                screening: screening.config(false),
+            },
+            refine: so2lin::refine::RefineConfig {
+                iterations: refine,
+                ..Default::default()
+            },
+            all_hypotheses,
+            size: (width, height),
+        }),
         Command::Solve {
             file,
             basis,
@@ -531,7 +585,7 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
         == r.hypotheses.first().map(|h| r.gamma(h));
     let c = est.counters();
     println!(
-        "online estimator: {} edges in {stream_ms:.1} ms (recording included): {} determined, {} ambiguous; finish() {} the batch answer",
+        "online estimator: {} edges in {stream_ms:.1} ms (recording on a writer thread): {} determined, {} ambiguous; finish() {} the batch answer",
         c.steps,
         c.determined,
         c.ambiguous,
@@ -549,5 +603,40 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
             Some(d) => format!("DIVERGES at step {}", d.step),
         }
     );
+
+    // Full poses: linear positions from the best orientations, then SE(2) refinement, against
+    // the same refinement from dead reckoning; the trajectory drawn next to the log.
+    let refine = so2lin::refine::RefineConfig::default();
+    let solved = solve::solve_screened(&world.graph, r, 0.0, &refine, false)?;
+    if let Some((_, s)) = solved.solutions.first() {
+        let odometry = so2lin::estimate::odometry_poses(&world.graph);
+        let baseline =
+            so2lin::refine::refine(&world.graph, &odometry, &refine).map_err(|e| e.to_string())?;
+        println!(
+            "poses: SE(2) cost {:.1} (linear) → {:.1} after {} refinement iterations ({:.1} ms); the same refinement from odometry: {:.1} → {:.1}",
+            s.cost_linear,
+            s.refined.cost(),
+            s.refined.iterations,
+            1e3 * s.seconds,
+            baseline.costs.first().copied().unwrap_or(f64::NAN),
+            baseline.cost()
+        );
+        let p0 = world.truth.poses[0];
+        let n = world.truth.poses.len() as f64;
+        let (mut dp, mut dt) = (0.0, 0.0);
+        for (p, t) in s.refined.poses.iter().zip(&world.truth.poses) {
+            let rel = p0.between(*t);
+            dp += (p.x - rel.x).powi(2) + (p.y - rel.y).powi(2);
+            dt += sim::wrap_angle(p.theta - rel.theta).powi(2);
+        }
+        println!(
+            "  pose error            RMS position {:.3}, RMS heading {:.4} rad against the truth",
+            (dp / n).sqrt(),
+            (dt / n).sqrt()
+        );
+    }
+    let figure = path.with_extension("svg");
+    plot::plot_solved(&world.graph, &solved, &figure, (1000, 1000))?;
+    println!("  plot                  {}", figure.display());
     Ok(())
 }

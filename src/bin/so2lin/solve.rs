@@ -41,7 +41,17 @@ pub fn solve_graph(
 ) -> Result<Solved, String> {
     let t = Instant::now();
     let screening = batch::screen(graph, config).map_err(|e| e.to_string())?;
-    let screen_seconds = t.elapsed().as_secs_f64();
+    solve_screened(graph, screening, t.elapsed().as_secs_f64(), refine, all)
+}
+
+/// Solve the best hypothesis of a screening, or all of them.
+pub fn solve_screened(
+    graph: &PoseGraph,
+    screening: BatchResult,
+    screen_seconds: f64,
+    refine: &RefineConfig,
+    all: bool,
+) -> Result<Solved, String> {
     let orient = OrientationEstimator::new(graph).map_err(|e| e.to_string())?;
     let take = if all { screening.hypotheses.len() } else { 1 };
     let mut solutions = Vec::with_capacity(take);
