@@ -43,7 +43,10 @@ pub struct BatchResult {
     pub model: GammaModel,
     /// The screening result.
     pub screened: Screened,
-    /// Time to build the basis.
+    /// Set when the requested basis could not be used and the incremental basis replaced it
+    /// (a minimum basis that is not integral, METHOD.md §5).
+    pub fallback: Option<BasisFallback>,
+    /// Time to build the basis (including a fallback and the integrality check).
     pub basis_seconds: f64,
     /// Time for the γ model and both screenings.
     pub screening_seconds: f64,
@@ -62,6 +65,33 @@ impl BatchResult {
         WrapSolver::new(&self.basis.cycles, self.edges)?
             .wraps(&self.basis.cycles, &self.screened.gamma(h))
     }
+}
+
+/// The requested basis was replaced by the incremental basis.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct BasisFallback {
+    /// The basis asked for.
+    pub requested: BasisKind,
+    /// Why it was not used, e.g. `|det C_L| = 3: not integral`.
+    pub reason: String,
+}
+
+/// Build the requested basis; a basis that is not integral (or not a basis) is replaced by
+/// the incremental basis, which always is, so no γ can give fractional wraps.
+pub fn integral_basis(graph: &PoseGraph, kind: BasisKind) -> (CycleBasis, Option<BasisFallback>) {
+    let reason = match CycleBasis::try_build(graph, kind, None) {
+        Err(e) => e.to_string(),
+        Ok(basis) => match basis.wrap_solver(graph.edge_count()) {
+            Ok(s) if s.is_integral() => return (basis, None),
+            Ok(s) => format!("|det C_L| = {}: not integral", s.abs_det()),
+            Err(e) => e.to_string(),
+        },
+    };
+    let fallback = BasisFallback {
+        requested: kind,
+        reason,
+    };
+    (CycleBasis::incremental(graph), Some(fallback))
 }
 
 /// Why the pipeline stopped.
@@ -102,7 +132,7 @@ pub(crate) fn run_screening(
 pub fn screen(graph: &PoseGraph, config: &BatchConfig) -> Result<BatchResult, BatchError> {
     config.screening.validate()?;
     let t0 = Instant::now();
-    let basis = CycleBasis::build(graph, config.basis);
+    let (basis, fallback) = integral_basis(graph, config.basis);
     let basis_seconds = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
     let sigma2: Vec<f64> = graph.edges().iter().map(|e| e.sigma2()).collect();
@@ -115,6 +145,7 @@ pub fn screen(graph: &PoseGraph, config: &BatchConfig) -> Result<BatchResult, Ba
         basis,
         model,
         screened,
+        fallback,
         basis_seconds,
         screening_seconds: t1.elapsed().as_secs_f64(),
     })

@@ -9,6 +9,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
+mod bases;
 mod replay;
 mod screen;
 mod stream;
@@ -138,6 +139,24 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Every cycle basis of a file side by side: weight, ratio to the MCB, cycle lengths,
+    /// integrality, density of P_γ, time (the paper's Table I, extended).
+    Bases {
+        /// Graph file (g2o or TORO).
+        file: PathBuf,
+        /// Time budget per basis in seconds; a basis not done in time is listed with an error.
+        #[arg(long)]
+        max_seconds: Option<f64>,
+        /// k of the (2k−1)-approximate MCB.
+        #[arg(long, default_value_t = so2lin::cycles::approx::DEFAULT_K)]
+        approx_k: u32,
+        /// Information-matrix order of edge lines (default: detect).
+        #[arg(long, value_enum, default_value = "auto")]
+        order: OrderArg,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
     /// Feed a file's edges in file order through the online estimator, timing each step.
     Stream {
         /// Graph file (g2o or TORO).
@@ -239,6 +258,19 @@ fn main() -> ExitCode {
             })
         }
         Command::Replay { log, verify, json } => replay::run(&log, verify, json),
+        Command::Bases {
+            file,
+            max_seconds,
+            approx_k,
+            order,
+            json,
+        } => bases::run(bases::BasesArgs {
+            file: &file,
+            order: order.into(),
+            max_seconds,
+            k: approx_k,
+            json,
+        }),
         Command::Screen {
             file,
             basis,
