@@ -3,7 +3,7 @@
 //! Order the edges as tree edges then chords, `C = [C_T C_L]`; then `k = [0; C_L⁻¹ γ]` solves
 //! `C k = γ`, and every solution gives the same orientations modulo 2π (paper Prop. 1).
 //! `C_L⁻¹ γ` is integral for every integer γ iff `|det C_L| = 1`, and `|det C_L|` is the same
-//! for every spanning tree ([`crate::cycles::integral`]).
+//! for every spanning tree (see `cycles::integral`).
 //!
 //! **Triangular bases** (fundamental, incremental, and every basis arranged by
 //! [`CycleBasis::ordered`](crate::cycles::CycleBasis::ordered) that peels completely): cycle t

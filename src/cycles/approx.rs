@@ -2,7 +2,7 @@
 //! ("New approximation algorithms for minimum cycle bases of graphs", STACS 2007 /
 //! Algorithmica 2011); with k = 2 it is the paper's MCB_a (METHOD.md §6).
 //!
-//! After the same reduction as the exact MCB (blocks, contracted chains; [`super::reduce`]),
+//! After the same reduction as the exact MCB (blocks, contracted chains; `reduce`),
 //! in each block:
 //! 1. a greedy (2k−1)-spanner S (Althöfer et al.): edges by increasing weight (ties by id);
 //!    `e = (a, b)` joins S unless S already holds an `a–b` path of weight `≤ (2k−1)·w_e`

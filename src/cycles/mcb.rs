@@ -2,7 +2,7 @@
 //! (METHOD.md §6: with weights σ², the MCB minimises `tr P_γ`).
 //!
 //! **Reduction.** The graph is split into biconnected blocks and every chain of degree-2
-//! nodes is contracted into one edge ([`super::reduce`]); a block that is a single cycle is
+//! nodes is contracted into one edge (`reduce`); a block that is a single cycle is
 //! its own MCB. What follows runs on each contracted block (`n` nodes, `m` edges,
 //! `ℓ = m − n + 1`), and the cycles are expanded back at the end.
 //!
@@ -20,7 +20,7 @@
 //! 2009). The least-weight odd cycle is found among Horton candidates `C(v, e)`: for a root
 //! `v`, the shortest-path tree `T_v`, and an edge `e = (x, y)` not in `T_v` whose ends lie in
 //! different subtrees of `v`, `C(v, e) = P(v, x) + e + P(y, v)`, of weight
-//! `d(v, x) + w_e + d(v, y)`. Roots are a feedback vertex set ([`super::fvs`]), so every cycle
+//! `d(v, x) + w_e + d(v, y)`. Roots are a feedback vertex set (`fvs`), so every cycle
 //! passes through a root. Why this suffices: let `C` be a least-weight odd cycle and `v` a root
 //! on it; then `C = Σ_{e ∈ C} C_v(e)` over GF(2) (the tree paths cancel pairwise), and each term
 //! weighs at most `w(C)`; one term is odd, and if its two paths shared a first edge, removing

@@ -5,10 +5,12 @@
 //! `C Aᵀ = 0` (the signed edges close up at every node). The weight of a cycle is `Σ σ_e²`,
 //! and `tr P_γ = Σ_cycles weight / 4π²`.
 //!
-//! Each cycle here carries a designated **chord**, traversed with sign `+1`. The bases built in
-//! this module are *triangular*: cycle `t` contains its own chord and otherwise only tree edges
-//! and chords of earlier cycles, so `C_L` (the chord columns) is lower triangular with unit
-//! diagonal, `det C_L = 1`, and the wraps follow by forward substitution ([`crate::wraps`]).
+//! Each cycle here carries a designated **chord**, traversed with sign `+1`. The fundamental
+//! and incremental bases are *triangular*: cycle `t` contains its own chord and otherwise only
+//! tree edges and chords of earlier cycles, so `C_L` (the chord columns) is lower triangular
+//! with unit diagonal, `det C_L = 1`, and the wraps follow by forward substitution
+//! ([`crate::wraps`]). The minimum bases are arranged the same way as far as their structure
+//! allows ([`CycleBasis::ordered`]); their integrality is checked exactly (`integral`).
 //!
 //! Bases:
 //! - fundamental basis of a spanning tree ([`CycleBasis::fundamental`]): chord + tree path;
@@ -16,7 +18,11 @@
 //!   two already connected nodes closes the cycle `chord + least-σ² path` through the graph so
 //!   far (Dijkstra from one end, stopped when the other end is settled, so a local loop only
 //!   explores a local ball). This is the basis of the online estimator; the batch pipeline
-//!   computes it by replaying the file's edges through the same type.
+//!   computes it by replaying the file's edges through the same type;
+//! - the exact **minimum cycle basis** w.r.t. σ² ([`mcb`]: de Pina's phases over Horton
+//!   candidates, after splitting into blocks and contracting odometry chains, `reduce`);
+//! - the **(2k−1)-approximate MCB** ([`approx`]: exact MCB of a greedy spanner plus one cycle
+//!   per remaining edge).
 
 use std::time::Instant;
 
@@ -190,7 +196,7 @@ impl CycleBasis {
     }
 
     /// Arrange closed cycles (any start, any orientation) as a basis in the form the rest of
-    /// the crate prefers: the cycles that peel off triangularly ([`integral`]) come after the
+    /// the crate prefers: the cycles that peel off triangularly (`integral`) come after the
     /// non-triangular core (if any), in peel order, each rotated and oriented so that its
     /// designated edge is `terms[0]` with sign `+1`. When there is no core,
     /// [`WrapSolver`] takes its forward-substitution path. Orientation changes the sign of a
