@@ -17,7 +17,7 @@ fn dataset(name: &str) -> Option<PoseGraph> {
     let dir = std::env::var_os("SO2LIN_DATASETS")
         .map(PathBuf::from)
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/datasets"));
-    match read_graph(&dir.join(name), ReadOptions::default()) {
+    match read_graph(dir.join(name), ReadOptions::default()) {
         Ok((g, _)) => Some(g),
         Err(e) => {
             eprintln!("skipping {name}: {e}");

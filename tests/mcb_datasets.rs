@@ -25,7 +25,7 @@ fn mcb_is_lightest_and_approximation_within_bound_on_every_dataset() {
     names.sort();
     let mut checked = 0;
     for name in names {
-        let (g, _) = read_graph(&dir.join(&name), ReadOptions::default()).unwrap();
+        let (g, _) = read_graph(dir.join(&name), ReadOptions::default()).unwrap();
         if g.edge_count() > 25_000 {
             eprintln!("{name}: {} edges > 25 000, skipped", g.edge_count());
             continue;
