@@ -7,7 +7,7 @@
 
 use std::time::Instant;
 
-use crate::cycles::{BasisKind, CycleBasis};
+use crate::cycles::{BasisKind, CycleBasis, McbError};
 use crate::estimate::{EstimateError, OrientationEstimator};
 use crate::gamma::{GammaModel, SingularError};
 use crate::graph::{Pose2, PoseGraph};
@@ -46,7 +46,10 @@ pub struct BatchResult {
     pub model: GammaModel,
     /// The screening result.
     pub screened: Screened,
-    /// Time to build the basis.
+    /// Set when the requested basis could not be used and the incremental basis replaced it
+    /// (a minimum basis that is not integral, METHOD.md §5).
+    pub fallback: Option<BasisFallback>,
+    /// Time to build the basis (including a fallback and the integrality check).
     pub basis_seconds: f64,
     /// Time for the γ model and both screenings.
     pub screening_seconds: f64,
@@ -121,6 +124,42 @@ pub fn solve(
     })
 }
 
+/// The requested basis was replaced by the incremental basis.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct BasisFallback {
+    /// The basis asked for.
+    pub requested: BasisKind,
+    /// Why it was not used, e.g. `|det C_L| = 3: not integral`.
+    pub reason: String,
+}
+
+/// Build the requested basis; a basis that is not integral (or not a basis) is replaced by
+/// the incremental basis, which always is, so no γ can give fractional wraps.
+pub fn integral_basis(graph: &PoseGraph, kind: BasisKind) -> (CycleBasis, Option<BasisFallback>) {
+    usable_or_incremental(graph, kind, CycleBasis::try_build(graph, kind, None))
+}
+
+/// The basis if it was built and is integral, else the incremental basis and why.
+fn usable_or_incremental(
+    graph: &PoseGraph,
+    kind: BasisKind,
+    built: Result<CycleBasis, McbError>,
+) -> (CycleBasis, Option<BasisFallback>) {
+    let reason = match built {
+        Err(e) => e.to_string(),
+        Ok(basis) => match basis.wrap_solver(graph.edge_count()) {
+            Ok(s) if s.is_integral() => return (basis, None),
+            Ok(s) => format!("|det C_L| = {}: not integral", s.abs_det()),
+            Err(e) => e.to_string(),
+        },
+    };
+    let fallback = BasisFallback {
+        requested: kind,
+        reason,
+    };
+    (CycleBasis::incremental(graph), Some(fallback))
+}
+
 /// Why the pipeline stopped.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum BatchError {
@@ -159,7 +198,7 @@ pub(crate) fn run_screening(
 pub fn screen(graph: &PoseGraph, config: &BatchConfig) -> Result<BatchResult, BatchError> {
     config.screening.validate()?;
     let t0 = Instant::now();
-    let basis = CycleBasis::build(graph, config.basis);
+    let (basis, fallback) = integral_basis(graph, config.basis);
     let basis_seconds = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
     let sigma2: Vec<f64> = graph.edges().iter().map(|e| e.sigma2()).collect();
@@ -172,7 +211,49 @@ pub fn screen(graph: &PoseGraph, config: &BatchConfig) -> Result<BatchResult, Ba
         basis,
         model,
         screened,
+        fallback,
         basis_seconds,
         screening_seconds: t1.elapsed().as_secs_f64(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cycles::{Cycle, SignedEdge};
+    use crate::graph::{Edge, NodePolicy, Pose2};
+
+    #[test]
+    fn a_non_integral_basis_falls_back_to_the_incremental_one() {
+        // K4 (edges 01 02 03 12 13 23) and its three Hamiltonian cycles: |det C_L| = 2.
+        let mut g = PoseGraph::new();
+        for (a, b) in [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)] {
+            let e = Edge::with_sigmas(a, b, Pose2::default(), 1.0, 0.1).unwrap();
+            g.add_edge(e, NodePolicy::CreateUnknown).unwrap();
+        }
+        let s = |e: usize, along: bool| SignedEdge::new(e, along);
+        let cycles = [
+            [s(0, true), s(3, true), s(5, true), s(2, false)],
+            [s(0, true), s(4, true), s(5, false), s(1, false)],
+            [s(1, true), s(3, false), s(4, true), s(2, false)],
+        ]
+        .map(|t| Cycle {
+            terms: t.into_iter().collect(),
+        });
+        let hand = CycleBasis {
+            kind: BasisKind::Mcb,
+            cycles: cycles.to_vec(),
+        };
+        let (basis, fallback) = usable_or_incremental(&g, BasisKind::Mcb, Ok(hand));
+        assert_eq!(basis.kind, BasisKind::Incremental);
+        let f = fallback.unwrap();
+        assert_eq!(f.requested, BasisKind::Mcb);
+        assert!(f.reason.contains("|det C_L| = 2"), "{}", f.reason);
+        // The real minimum basis of K4 (three triangles) is integral and kept.
+        let (basis, fallback) = integral_basis(&g, BasisKind::Mcb);
+        assert_eq!((basis.kind, fallback), (BasisKind::Mcb, None));
+        let (_, fallback) =
+            usable_or_incremental(&g, BasisKind::McbApprox, Err(McbError::Deadline));
+        assert!(fallback.unwrap().reason.contains("budget"));
+    }
 }

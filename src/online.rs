@@ -580,6 +580,7 @@ impl OnlineEstimator {
             basis,
             model: self.model.clone(),
             screened,
+            fallback: None,
             basis_seconds: 0.0,
             screening_seconds: 0.0,
         })

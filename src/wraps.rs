@@ -2,31 +2,47 @@
 //!
 //! Order the edges as tree edges then chords, `C = [C_T C_L]`; then `k = [0; C_L⁻¹ γ]` solves
 //! `C k = γ`, and every solution gives the same orientations modulo 2π (paper Prop. 1).
-//! `C_L⁻¹ γ` is integral for every integer γ iff `det C_L = ±1`. The bases of
-//! [`crate::cycles`] are triangular — cycle t holds its chord with sign +1 and otherwise only
-//! tree edges and chords of earlier cycles — so `C_L` is unit lower triangular and
+//! `C_L⁻¹ γ` is integral for every integer γ iff `|det C_L| = 1`, and `|det C_L|` is the same
+//! for every spanning tree (see `cycles::integral`).
+//!
+//! **Triangular bases** (fundamental, incremental, and every basis arranged by
+//! [`CycleBasis::ordered`](crate::cycles::CycleBasis::ordered) that peels completely): cycle t
+//! holds its chord as `terms[0]` with sign +1 and otherwise only tree edges and chords of
+//! earlier cycles, so `C_L` is unit lower triangular and
 //!
 //! ```text
 //! k_{chord(t)} = γ_t − Σ_{e ∈ c_t, e ≠ chord(t)} (±1) k_e        (forward substitution),
 //! ```
 //!
-//! integral by construction. [`WrapSolver::new`] checks the triangular structure and refuses a
-//! basis without it (a general `C_L` needs an integrality check per γ).
+//! integral by construction.
+//!
+//! **Any other basis** (e.g. a minimum basis with a non-triangular core): the cycles are
+//! peeled into a core and a triangular part; the core is eliminated exactly over the integers
+//! (unimodular row operations), which gives `|det C_L|`; k is solved on the core's pivot
+//! columns, then by forward substitution through the peeled cycles (dividing by the ±1 sign of
+//! each designated edge). When `|det C_L| > 1`, a γ whose k would be fractional is reported as
+//! [`WrapError::Fractional`], never rounded.
 
 use crate::cycles::Cycle;
+use crate::cycles::integral::{Designated, IntegerError, IntegerLu, peel};
 
-/// The basis is not triangular in its chords.
+/// Why no wraps.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum WrapError {
-    /// Cycle `cycle` uses edge `edge`, the chord of a later cycle (or a chord twice).
-    #[error(
-        "cycle {cycle} uses edge {edge}, the chord of a later or the same cycle: C_L is not triangular"
-    )]
-    NotTriangular {
-        /// The cycle.
+    /// The cycles are not linearly independent.
+    #[error("the cycles are linearly dependent (cycle {cycle}): not a basis")]
+    Dependent {
+        /// A cycle of the dependent set.
         cycle: usize,
-        /// The edge.
-        edge: usize,
+    },
+    /// The exact elimination overflowed 64-bit integers.
+    #[error("integer overflow in the exact elimination of the cycle matrix")]
+    Overflow,
+    /// γ has no integer k (the basis is not integral).
+    #[error("C k = γ has no integer solution (cycle {cycle}): the basis is not integral")]
+    Fractional {
+        /// The cycle whose equation did not divide exactly.
+        cycle: usize,
     },
     /// γ has the wrong length.
     #[error("γ has {got} entries, the basis has {want} cycles")]
@@ -38,42 +54,93 @@ pub enum WrapError {
     },
 }
 
-/// Recovers k from γ for a triangular basis.
+impl From<IntegerError> for WrapError {
+    fn from(e: IntegerError) -> Self {
+        match e {
+            IntegerError::Dependent { cycle } => Self::Dependent { cycle },
+            IntegerError::Overflow => Self::Overflow,
+            IntegerError::Fractional { cycle } => Self::Fractional { cycle },
+        }
+    }
+}
+
+/// The non-triangular part of a general basis.
+#[derive(Clone, Debug)]
+struct General {
+    core: IntegerLu,
+    peeled: Vec<Designated>,
+}
+
+/// Recovers k from γ for a basis: forward substitution when it is triangular as given, the
+/// exact peel-and-eliminate solver otherwise.
 #[derive(Clone, Debug)]
 pub struct WrapSolver {
     edges: usize,
+    general: Option<General>,
+}
+
+/// Whether `cycles` are triangular as given: distinct chords `terms[0]` with sign +1, and no
+/// cycle uses the chord of a later one.
+fn is_triangular(cycles: &[Cycle], edges: usize) -> bool {
+    const NONE: usize = usize::MAX;
+    let mut owner = vec![NONE; edges];
+    for (t, c) in cycles.iter().enumerate() {
+        let Some(first) = c.terms.first() else {
+            return false;
+        };
+        let chord = first.edge as usize;
+        if first.sign != 1 || owner[chord] != NONE {
+            return false;
+        }
+        owner[chord] = t;
+    }
+    cycles.iter().enumerate().all(|(t, c)| {
+        c.terms[1..].iter().all(|term| {
+            let o = owner[term.edge as usize];
+            o == NONE || o < t
+        })
+    })
 }
 
 impl WrapSolver {
-    /// Check that `cycles` (over `edges` edges) is triangular in its chords.
+    /// Analyse `cycles` over `edges` edges: fails only if they are not independent (or the
+    /// exact elimination overflows).
     pub fn new(cycles: &[Cycle], edges: usize) -> Result<Self, WrapError> {
-        const NONE: usize = usize::MAX;
-        let mut owner = vec![NONE; edges];
-        for (t, c) in cycles.iter().enumerate() {
-            let chord = c.chord() as usize;
-            if owner[chord] != NONE {
-                return Err(WrapError::NotTriangular {
-                    cycle: t,
-                    edge: chord,
-                });
-            }
-            owner[chord] = t;
+        if is_triangular(cycles, edges) {
+            return Ok(Self {
+                edges,
+                general: None,
+            });
         }
-        for (t, c) in cycles.iter().enumerate() {
-            for term in &c.terms[1..] {
-                let o = owner[term.edge as usize];
-                if o != NONE && o >= t {
-                    return Err(WrapError::NotTriangular {
-                        cycle: t,
-                        edge: term.edge as usize,
-                    });
-                }
-            }
-        }
-        Ok(Self { edges })
+        let (core, peeled) = peel(cycles, edges);
+        let core = IntegerLu::new(cycles, &core)?;
+        Ok(Self {
+            edges,
+            general: Some(General { core, peeled }),
+        })
     }
 
-    /// `k = [0; C_L⁻¹ γ]`: zero on tree edges, forward substitution on the chords.
+    /// `|det C_L|` (the same for every spanning tree): 1 for an integral basis.
+    pub fn abs_det(&self) -> u128 {
+        self.general.as_ref().map_or(1, |g| g.core.abs_det())
+    }
+
+    /// Whether every integer γ has integer wraps (`|det C_L| = 1`).
+    pub fn is_integral(&self) -> bool {
+        self.abs_det() == 1
+    }
+
+    /// Number of cycles in the non-triangular core (0 when every cycle peels off).
+    pub fn core_len(&self) -> usize {
+        self.general.as_ref().map_or(0, |g| g.core.len())
+    }
+
+    /// Whether the basis is triangular as given (forward substitution only).
+    pub fn is_triangular(&self) -> bool {
+        self.general.is_none()
+    }
+
+    /// An integer k with `C k = γ`: `k = [0; C_L⁻¹ γ]` for the basis' chords (tree edges 0).
     pub fn wraps(&self, cycles: &[Cycle], gamma: &[i64]) -> Result<Vec<i64>, WrapError> {
         if gamma.len() != cycles.len() {
             return Err(WrapError::Length {
@@ -82,12 +149,27 @@ impl WrapSolver {
             });
         }
         let mut k = vec![0i64; self.edges];
-        for (c, &g) in cycles.iter().zip(gamma) {
-            let rest: i64 = c.terms[1..]
+        let Some(general) = &self.general else {
+            for (c, &g) in cycles.iter().zip(gamma) {
+                let rest: i64 = c.terms[1..]
+                    .iter()
+                    .map(|t| i64::from(t.sign) * k[t.edge as usize])
+                    .sum();
+                k[c.chord() as usize] = g - rest;
+            }
+            return Ok(k);
+        };
+        general.core.solve(gamma, &mut k)?;
+        for d in &general.peeled {
+            let c = &cycles[d.cycle as usize];
+            let rest: i64 = c
+                .terms
                 .iter()
+                .filter(|t| t.edge != d.edge)
                 .map(|t| i64::from(t.sign) * k[t.edge as usize])
                 .sum();
-            k[c.chord() as usize] = g - rest;
+            // sign = ±1, so dividing is multiplying.
+            k[d.edge as usize] = i64::from(d.sign) * (gamma[d.cycle as usize] - rest);
         }
         Ok(k)
     }
@@ -125,7 +207,7 @@ mod tests {
     }
 
     #[test]
-    fn non_triangular_basis_is_refused() {
+    fn reordered_basis_takes_the_general_path() {
         use crate::cycles::IncrementalBasis;
         // Triangle 0→1→2 closed by 2→0 (cycle 0), then a parallel 0→2 whose cheapest path
         // back is the chord 2→0 of cycle 0.
@@ -136,16 +218,24 @@ mod tests {
             .collect();
         assert_eq!(cycles.len(), 2);
         assert!(cycles[1].terms.iter().any(|t| t.edge == 2));
-        assert!(WrapSolver::new(&cycles, 4).is_ok());
+        assert!(WrapSolver::new(&cycles, 4).unwrap().is_triangular());
         cycles.swap(0, 1);
+        let solver = WrapSolver::new(&cycles, 4).unwrap();
+        assert!(!solver.is_triangular());
+        assert!(solver.is_integral());
+        for gamma in [[1, 2], [-3, 0], [0, 5]] {
+            let k = solver.wraps(&cycles, &gamma).unwrap();
+            assert_eq!(gamma_of(&cycles, &k), gamma);
+        }
         assert!(matches!(
-            WrapSolver::new(&cycles, 4),
-            Err(WrapError::NotTriangular { cycle: 0, edge: 2 })
+            solver.wraps(&cycles, &[1]),
+            Err(WrapError::Length { got: 1, want: 2 })
         ));
-        let solver = WrapSolver::new(&cycles[1..], 4).unwrap();
+        // A dependent set is refused.
+        let twice = vec![cycles[0].clone(), cycles[0].clone()];
         assert!(matches!(
-            solver.wraps(&cycles[1..], &[1, 2]),
-            Err(WrapError::Length { got: 2, want: 1 })
+            WrapSolver::new(&twice, 4),
+            Err(WrapError::Dependent { .. })
         ));
     }
 }

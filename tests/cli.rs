@@ -229,7 +229,7 @@ fn screen_json_has_the_documented_fields_and_writes_orientations() {
         &["--poses", "400", "--seed", "3", "--sigma-theta", "0.1"],
     );
     let orient = scratch("screen_orient.txt");
-    for basis in ["odometric", "mst", "incremental"] {
+    for basis in ["odometric", "mst", "incremental", "mcb", "mcb-approx"] {
         let v = run_json([
             "screen".as_ref(),
             "--json".as_ref(),
@@ -254,6 +254,7 @@ fn screen_json_has_the_documented_fields_and_writes_orientations() {
             assert!(v.get(key).is_some(), "missing {key}");
         }
         assert_eq!(v["basis"]["kind"], basis);
+        assert!(v["basis"]["fallback"].is_null(), "{}", v["basis"]);
         for key in ["read", "basis", "screening", "estimate", "total"] {
             assert!(v["seconds"][key].as_f64().unwrap() >= 0.0);
         }
@@ -442,4 +443,73 @@ fn sample_logs_regenerate_and_replay_verified() {
         .unwrap();
     assert!(!out.status.success());
     assert_eq!(String::from_utf8(out.stderr).unwrap().lines().count(), 1);
+}
+
+#[test]
+fn bases_json_lists_every_basis_with_the_documented_fields() {
+    let g = simulated("bases.g2o", &["--poses", "600", "--seed", "5"]);
+    let v = run_json(["bases".as_ref(), "--json".as_ref(), g.as_os_str()]);
+    let rows = v["bases"].as_array().unwrap();
+    let kinds: Vec<&str> = rows.iter().map(|r| r["kind"].as_str().unwrap()).collect();
+    assert_eq!(
+        kinds,
+        ["odometric", "mst", "incremental", "mcb", "mcb-approx"]
+    );
+    let mcb = rows[3]["weight"].as_f64().unwrap();
+    for r in rows {
+        for key in [
+            "weight",
+            "ratio_to_mcb",
+            "mean_cycle_length",
+            "max_cycle_length",
+            "integral",
+            "density",
+            "seconds",
+        ] {
+            assert!(r.get(key).is_some(), "{} lacks {key}", r["kind"]);
+        }
+        let w = r["weight"].as_f64().unwrap();
+        assert!(
+            w >= mcb * (1.0 - 1e-12),
+            "{} lighter than the MCB",
+            r["kind"]
+        );
+        let ratio = r["ratio_to_mcb"].as_f64().unwrap();
+        assert!((ratio - w / mcb).abs() < 1e-12);
+        let d = r["density"].as_f64().unwrap();
+        assert!(d > 0.0 && d <= 1.0);
+        assert_eq!(r["integral"], true);
+    }
+    assert_eq!(rows[3]["ratio_to_mcb"].as_f64(), Some(1.0));
+    assert!(rows[4]["weight"].as_f64().unwrap() <= 3.0 * mcb);
+    // A budget nothing can meet: every basis is listed with an error instead.
+    let v = run_json([
+        "bases".as_ref(),
+        "--json".as_ref(),
+        "--max-seconds".as_ref(),
+        "1e-9".as_ref(),
+        g.as_os_str(),
+    ]);
+    for r in v["bases"].as_array().unwrap() {
+        assert!(r["error"].as_str().is_some(), "{r}");
+        assert!(r.get("weight").is_none());
+    }
+    // Text output has the table; a bad budget is a one-line error.
+    let out = so2lin().arg("bases").arg(&g).output().unwrap();
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(
+        text.contains("mcb-approx") && text.contains("integral"),
+        "{text}"
+    );
+    let out = so2lin()
+        .args(["bases", "--max-seconds", "0"])
+        .arg(&g)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(
+        String::from_utf8(out.stderr)
+            .unwrap()
+            .contains("max-seconds")
+    );
 }

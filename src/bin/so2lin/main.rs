@@ -9,6 +9,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
+mod bases;
 mod plot;
 mod replay;
 mod screen;
@@ -167,6 +168,24 @@ enum Command {
         /// Write the best refined poses and the edges as g2o.
         #[arg(long)]
         out: Option<PathBuf>,
+        /// Information-matrix order of edge lines (default: detect).
+        #[arg(long, value_enum, default_value = "auto")]
+        order: OrderArg,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Every cycle basis of a file side by side: weight, ratio to the MCB, cycle lengths,
+    /// integrality, density of P_γ, time (the paper's Table I, extended).
+    Bases {
+        /// Graph file (g2o or TORO).
+        file: PathBuf,
+        /// Time budget per basis in seconds; a basis not done in time is listed with an error.
+        #[arg(long)]
+        max_seconds: Option<f64>,
+        /// k of the (2k−1)-approximate MCB.
+        #[arg(long, default_value_t = so2lin::cycles::approx::DEFAULT_K)]
+        approx_k: u32,
         /// Information-matrix order of edge lines (default: detect).
         #[arg(long, value_enum, default_value = "auto")]
         order: OrderArg,
@@ -354,6 +373,19 @@ fn main() -> ExitCode {
             all_hypotheses,
             odometry,
             out: out.as_deref(),
+            json,
+        }),
+        Command::Bases {
+            file,
+            max_seconds,
+            approx_k,
+            order,
+            json,
+        } => bases::run(bases::BasesArgs {
+            file: &file,
+            order: order.into(),
+            max_seconds,
+            k: approx_k,
             json,
         }),
         Command::Screen {

@@ -80,6 +80,7 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
                 "mean_cycle_length": r.basis.mean_length(),
                 "max_cycle_length": r.basis.max_length(),
                 "seconds": r.basis_seconds,
+                "fallback": r.fallback,
             },
             "first_screening": r.first,
             "second_screening": second,
@@ -111,6 +112,12 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
             e.anchors.len(),
             shown,
             if e.anchors.len() > 10 { " …" } else { "" }
+        );
+    }
+    if let Some(f) = &r.fallback {
+        println!(
+            "basis {:?} not used ({}): falling back to the incremental basis",
+            f.requested, f.reason
         );
     }
     println!(

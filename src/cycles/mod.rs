@@ -5,10 +5,12 @@
 //! `C Aᵀ = 0` (the signed edges close up at every node). The weight of a cycle is `Σ σ_e²`,
 //! and `tr P_γ = Σ_cycles weight / 4π²`.
 //!
-//! Each cycle here carries a designated **chord**, traversed with sign `+1`. The bases built in
-//! this module are *triangular*: cycle `t` contains its own chord and otherwise only tree edges
-//! and chords of earlier cycles, so `C_L` (the chord columns) is lower triangular with unit
-//! diagonal, `det C_L = 1`, and the wraps follow by forward substitution ([`crate::wraps`]).
+//! Each cycle here carries a designated **chord**, traversed with sign `+1`. The fundamental
+//! and incremental bases are *triangular*: cycle `t` contains its own chord and otherwise only
+//! tree edges and chords of earlier cycles, so `C_L` (the chord columns) is lower triangular
+//! with unit diagonal, `det C_L = 1`, and the wraps follow by forward substitution
+//! ([`crate::wraps`]). The minimum bases are arranged the same way as far as their structure
+//! allows ([`CycleBasis::ordered`]); their integrality is checked exactly (`integral`).
 //!
 //! Bases:
 //! - fundamental basis of a spanning tree ([`CycleBasis::fundamental`]): chord + tree path;
@@ -16,15 +18,29 @@
 //!   two already connected nodes closes the cycle `chord + least-σ² path` through the graph so
 //!   far (Dijkstra from one end, stopped when the other end is settled, so a local loop only
 //!   explores a local ball). This is the basis of the online estimator; the batch pipeline
-//!   computes it by replaying the file's edges through the same type.
+//!   computes it by replaying the file's edges through the same type;
+//! - the exact **minimum cycle basis** w.r.t. σ² ([`mcb`]: de Pina's phases over Horton
+//!   candidates, after splitting into blocks and contracting odometry chains, `reduce`);
+//! - the **(2k−1)-approximate MCB** ([`approx`]: exact MCB of a greedy spanner plus one cycle
+//!   per remaining edge).
 
-use std::cmp::Ordering;
-use std::collections::BinaryHeap;
+use std::time::Instant;
 
 use smallvec::SmallVec;
 
 use crate::graph::{PoseGraph, UnionFind};
 use crate::tree::SpanningTree;
+use crate::wraps::{WrapError, WrapSolver};
+
+pub mod approx;
+mod dijkstra;
+mod fvs;
+pub(crate) mod integral;
+pub mod mcb;
+mod reduce;
+
+use dijkstra::{Adjacency, Dijkstra};
+pub use mcb::McbError;
 
 /// One edge of a cycle with its traversal sign (+1 along the edge, −1 against it).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
@@ -33,6 +49,16 @@ pub struct SignedEdge {
     pub edge: u32,
     /// +1 or −1.
     pub sign: i8,
+}
+
+impl SignedEdge {
+    /// Edge `edge` traversed along its direction (`+1`) or against it (`−1`).
+    pub fn new(edge: usize, along: bool) -> Self {
+        Self {
+            edge: edge as u32,
+            sign: if along { 1 } else { -1 },
+        }
+    }
 }
 
 /// A cycle: its signed edges, the first of which is its chord (sign +1).
@@ -96,6 +122,10 @@ pub enum BasisKind {
     Mst,
     /// The incremental basis (chord + least-σ² path through the graph so far, in file order).
     Incremental,
+    /// The exact minimum cycle basis w.r.t. σ² ([`mcb`]).
+    Mcb,
+    /// The (2k−1)-approximate minimum cycle basis with k = 2 ([`approx`]).
+    McbApprox,
 }
 
 /// A cycle basis of a graph: `ℓ = m − n + c` cycles.
@@ -108,13 +138,98 @@ pub struct CycleBasis {
 }
 
 impl CycleBasis {
-    /// Build a basis of the given kind.
+    /// Build a basis of the given kind (no time limit).
+    ///
+    /// The minimum bases cannot fail on a [`PoseGraph`] (its edges join two different nodes
+    /// and have positive finite σ²); should that ever be violated, the incremental basis is
+    /// returned instead. Use [`try_build`](Self::try_build) to see such errors and to set a
+    /// deadline.
     pub fn build(graph: &PoseGraph, kind: BasisKind) -> Self {
-        match kind {
+        Self::try_build(graph, kind, None).unwrap_or_else(|_| Self::incremental(graph))
+    }
+
+    /// Build a basis of the given kind; the minimum bases give up with
+    /// [`McbError::Deadline`] once `deadline` has passed (checked between shortest-path trees
+    /// and between de Pina phases). The other kinds are not interrupted.
+    pub fn try_build(
+        graph: &PoseGraph,
+        kind: BasisKind,
+        deadline: Option<Instant>,
+    ) -> Result<Self, McbError> {
+        Ok(match kind {
             BasisKind::Odometric => Self::fundamental(graph, &SpanningTree::odometric(graph), kind),
             BasisKind::Mst => Self::fundamental(graph, &SpanningTree::minimum(graph), kind),
             BasisKind::Incremental => Self::incremental(graph),
+            BasisKind::Mcb => Self::minimum(graph, deadline)?,
+            BasisKind::McbApprox => Self::approximate(graph, approx::DEFAULT_K, deadline)?,
+        })
+    }
+
+    /// The exact minimum cycle basis w.r.t. σ² ([`mcb`]), in [triangular order](Self::ordered).
+    pub fn minimum(graph: &PoseGraph, deadline: Option<Instant>) -> Result<Self, McbError> {
+        let sigma2: Vec<f64> = graph.edges().iter().map(|e| e.sigma2()).collect();
+        let cycles =
+            mcb::minimum_cycle_basis(graph.node_count(), graph.endpoints(), &sigma2, deadline)?;
+        Ok(Self::ordered(BasisKind::Mcb, cycles, graph.edge_count()))
+    }
+
+    /// The (2k−1)-approximate minimum cycle basis ([`approx`]), in
+    /// [triangular order](Self::ordered); [`BasisKind::McbApprox`] is k = 2.
+    pub fn approximate(
+        graph: &PoseGraph,
+        k: u32,
+        deadline: Option<Instant>,
+    ) -> Result<Self, McbError> {
+        let sigma2: Vec<f64> = graph.edges().iter().map(|e| e.sigma2()).collect();
+        let cycles = approx::approximate_minimum_cycle_basis(
+            graph.node_count(),
+            graph.endpoints(),
+            &sigma2,
+            k,
+            deadline,
+        )?;
+        Ok(Self::ordered(
+            BasisKind::McbApprox,
+            cycles,
+            graph.edge_count(),
+        ))
+    }
+
+    /// Arrange closed cycles (any start, any orientation) as a basis in the form the rest of
+    /// the crate prefers: the cycles that peel off triangularly (`integral`) come after the
+    /// non-triangular core (if any), in peel order, each rotated and oriented so that its
+    /// designated edge is `terms[0]` with sign `+1`. When there is no core,
+    /// [`WrapSolver`] takes its forward-substitution path. Orientation changes the sign of a
+    /// row of C, not the basis, its weight or its integrality.
+    pub fn ordered(kind: BasisKind, cycles: Vec<Cycle>, edges: usize) -> Self {
+        let (core, peeled) = integral::peel(&cycles, edges);
+        let mut out: Vec<Cycle> = core.iter().map(|&t| cycles[t as usize].clone()).collect();
+        for d in peeled {
+            let c = &cycles[d.cycle as usize];
+            let at = c.terms.iter().position(|t| t.edge == d.edge).unwrap_or(0);
+            let n = c.terms.len();
+            let terms: SmallVec<[SignedEdge; 8]> = if d.sign > 0 {
+                (0..n).map(|i| c.terms[(at + i) % n]).collect()
+            } else {
+                // Reverse the traversal: start at the designated edge, walk backwards.
+                (0..n)
+                    .map(|i| {
+                        let t = c.terms[(at + n - i) % n];
+                        SignedEdge {
+                            edge: t.edge,
+                            sign: -t.sign,
+                        }
+                    })
+                    .collect()
+            };
+            out.push(Cycle { terms });
         }
+        Self { kind, cycles: out }
+    }
+
+    /// The exact solver of `C k = γ` for this basis, which knows `|det C_L|`.
+    pub fn wrap_solver(&self, edges: usize) -> Result<WrapSolver, WrapError> {
+        WrapSolver::new(&self.cycles, edges)
     }
 
     /// Fundamental basis: for each chord `a → b` (in edge order), the chord followed by the
@@ -134,11 +249,11 @@ impl CycleBasis {
                 });
                 // b up to the common ancestor: step v → parent along edge f.
                 for (v, f) in up_b {
-                    terms.push(signed(f, ends[f].0 == v));
+                    terms.push(SignedEdge::new(f, ends[f].0 == v));
                 }
                 // The common ancestor down to a: step parent → v along f.
                 for (v, f) in up_a.into_iter().rev() {
-                    terms.push(signed(f, ends[f].1 == v));
+                    terms.push(SignedEdge::new(f, ends[f].1 == v));
                 }
                 Cycle { terms }
             })
@@ -181,49 +296,17 @@ impl CycleBasis {
     }
 }
 
-fn signed(edge: usize, along: bool) -> SignedEdge {
-    SignedEdge {
-        edge: edge as u32,
-        sign: if along { 1 } else { -1 },
-    }
-}
-
-/// Dijkstra queue entry `(distance, push sequence, node)`, ordered so that `BinaryHeap` pops
-/// the smallest distance first and, among equal distances, the earliest pushed. Ties never
-/// look at node indices, so the basis depends only on the edges and their order, not on how
-/// nodes are numbered.
-#[derive(Clone, Copy, Debug, PartialEq)]
-struct Entry(f64, u64, u32);
-impl Eq for Entry {}
-impl Ord for Entry {
-    fn cmp(&self, other: &Self) -> Ordering {
-        other.0.total_cmp(&self.0).then(other.1.cmp(&self.1))
-    }
-}
-impl PartialOrd for Entry {
-    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
-        Some(self.cmp(other))
-    }
-}
-
 /// The incremental cycle basis, grown one edge at a time (METHOD.md §7).
 ///
-/// Dijkstra is written here rather than taken from petgraph because it must run on a graph
-/// that grows between calls, stop as soon as the target is settled, reuse its work arrays
-/// across calls (a generation stamp instead of clearing), and return the edge ids of the path
-/// (parallel edges are distinct).
+/// The path is found by the shared [`dijkstra`] search from one end, stopped when the other
+/// end is settled, on the graph as it has grown so far.
 #[derive(Clone, Debug, Default)]
 pub struct IncrementalBasis {
-    adj: Vec<Vec<(u32, u32)>>,
+    adj: Adjacency,
     ends: Vec<(u32, u32)>,
     sigma2: Vec<f64>,
     components: UnionFind,
-    dist: Vec<f64>,
-    pred: Vec<(u32, u32)>,
-    stamp: Vec<u32>,
-    settled: Vec<u32>,
-    generation: u32,
-    heap: BinaryHeap<Entry>,
+    search: Dijkstra,
     cycles: usize,
 }
 
@@ -238,10 +321,6 @@ impl IncrementalBasis {
         while self.adj.len() < n {
             self.adj.push(Vec::new());
             self.components.push();
-            self.dist.push(0.0);
-            self.pred.push((0, 0));
-            self.stamp.push(0);
-            self.settled.push(0);
         }
     }
 
@@ -290,49 +369,9 @@ impl IncrementalBasis {
     /// Append the least-σ² path `src → … → dst` (signed edges in traversal order) to `out`.
     /// `src` and `dst` must be connected.
     fn shortest_path(&mut self, src: usize, dst: usize, out: &mut SmallVec<[SignedEdge; 8]>) {
-        self.generation = self.generation.wrapping_add(1);
-        if self.generation == 0 {
-            self.stamp.iter_mut().for_each(|s| *s = 0);
-            self.settled.iter_mut().for_each(|s| *s = 0);
-            self.generation = 1;
-        }
-        let g = self.generation;
-        self.heap.clear();
-        self.stamp[src] = g;
-        self.dist[src] = 0.0;
-        let mut seq = 0u64;
-        self.heap.push(Entry(0.0, seq, src as u32));
-        while let Some(Entry(d, _, v)) = self.heap.pop() {
-            let v = v as usize;
-            if self.settled[v] == g {
-                continue;
-            }
-            self.settled[v] = g;
-            if v == dst {
-                break;
-            }
-            for &(w, e) in &self.adj[v] {
-                let w = w as usize;
-                let nd = d + self.sigma2[e as usize];
-                if self.stamp[w] != g || nd < self.dist[w] {
-                    self.stamp[w] = g;
-                    self.dist[w] = nd;
-                    self.pred[w] = (v as u32, e);
-                    seq += 1;
-                    self.heap.push(Entry(nd, seq, w as u32));
-                }
-            }
-        }
-        // Walk back from dst to src, then reverse into traversal order src → dst.
-        let start = out.len();
-        let mut v = dst;
-        while v != src {
-            let (u, e) = self.pred[v];
-            // Traversing u → v: along the edge if it is stored as (u, v).
-            out.push(signed(e as usize, self.ends[e as usize].0 == u));
-            v = u as usize;
-        }
-        out[start..].reverse();
+        self.search
+            .run(&self.adj, &self.sigma2, src, Some(dst), f64::INFINITY);
+        self.search.path(&self.ends, src, dst, out);
     }
 }
 
