@@ -237,3 +237,56 @@ fn a_recorder_dropped_without_finish_leaves_a_complete_file() {
     assert!(log.truncated.is_none(), "{:?}", log.truncated);
     assert_eq!(log.steps.len(), w.graph.edge_count());
 }
+
+/// `/poses` holds `OnlineEstimator::poses()` of the step it was taken at: periodic snapshots
+/// (solved by the writer from the wraps) and the final one (solved by the caller).
+#[test]
+fn pose_snapshots_are_the_estimators_poses() {
+    let mut c = SimConfig::new(500, 12);
+    c.sigma_theta = 0.1;
+    let w = simulate(&c).unwrap();
+    let sink = Shared::default();
+    let config = OnlineConfig::default();
+    let options = LogOptions {
+        snapshot_every: 150,
+        ..LogOptions::default()
+    };
+    let mut est = OnlineEstimator::new(config).unwrap();
+    est.attach_recorder(Recorder::new(Box::new(sink.clone()), &config, "t", options).unwrap());
+    let mut expected = Vec::new();
+    for (k, e) in w.graph.edges().iter().enumerate() {
+        est.add_edge(*e).unwrap();
+        if (k + 1) % 150 == 0 {
+            expected.push(est.poses().unwrap());
+        }
+    }
+    let rec = est.detach_recorder().unwrap();
+    expected.push(est.poses().unwrap());
+    rec.finish(&mut est).unwrap();
+    let bytes = sink.bytes();
+    let mut recorded = Vec::new();
+    for m in mcap::MessageStream::new(&bytes).unwrap() {
+        let m = m.unwrap();
+        if m.channel.topic == "/poses" {
+            let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+            recorded.push(v["poses"].as_array().unwrap().clone());
+        }
+    }
+    assert_eq!(recorded.len(), expected.len());
+    for (got, want) in recorded.iter().zip(&expected) {
+        assert_eq!(got.len(), want.len());
+        for (g, p) in got.iter().zip(want) {
+            let x = g["position"]["x"].as_f64().unwrap();
+            let y = g["position"]["y"].as_f64().unwrap();
+            let qz = g["orientation"]["z"].as_f64().unwrap();
+            // Single precision on the display channels.
+            assert!(
+                (x - p.x).abs() <= 1e-5 * (1.0 + p.x.abs()),
+                "{x} vs {}",
+                p.x
+            );
+            assert!((y - p.y).abs() <= 1e-5 * (1.0 + p.y.abs()));
+            assert!((qz - (0.5 * p.theta).sin()).abs() <= 1e-6);
+        }
+    }
+}

@@ -16,7 +16,7 @@
 
 use faer::linalg::solvers::Solve;
 use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
-use faer::sparse::{SparseColMat, SparseColMatRef, SymbolicSparseColMat, Triplet};
+use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
 use faer::{Col, Side};
 
 use super::EstimateError;
@@ -86,22 +86,28 @@ impl<const D: usize> NormalEquations<D> {
         let ends = graph.endpoints().to_vec();
         let dim = anchored.free * D;
         let unknown = |v: usize, i: usize| (var_of[v] != ANCHOR).then(|| var_of[v] * D + i);
-        let mut trip = Vec::with_capacity(4 * D * D * ends.len() + dim);
+        // Block column of each free node: itself and its free neighbours, ascending (unknown
+        // indices increase with node index), each expanded to D rows.
+        let mut adjacent: Vec<Vec<usize>> = vec![Vec::new(); anchored.free];
         for &(a, b) in &ends {
-            for (p, q) in [(a, a), (a, b), (b, a), (b, b)] {
-                for i in 0..D {
-                    for j in 0..D {
-                        if let (Some(r), Some(c)) = (unknown(p, i), unknown(q, j)) {
-                            trip.push(Triplet::new(r, c, 0.0));
-                        }
-                    }
-                }
+            if var_of[a] != ANCHOR && var_of[b] != ANCHOR {
+                adjacent[var_of[a]].push(var_of[b]);
+                adjacent[var_of[b]].push(var_of[a]);
             }
         }
-        trip.extend((0..dim).map(|i| Triplet::new(i, i, 0.0)));
-        let (pattern, _) = SparseColMat::<usize, f64>::try_new_from_triplets(dim, dim, &trip)
-            .map_err(|e| EstimateError(format!("{e:?}")))?
-            .into_parts();
+        let mut col_ptr = Vec::with_capacity(dim + 1);
+        let mut row_idx = Vec::new();
+        col_ptr.push(0);
+        for (v, near) in adjacent.iter_mut().enumerate() {
+            near.push(v);
+            near.sort_unstable();
+            near.dedup();
+            for _ in 0..D {
+                row_idx.extend(near.iter().flat_map(|&u| (0..D).map(move |i| u * D + i)));
+                col_ptr.push(row_idx.len());
+            }
+        }
+        let pattern = SymbolicSparseColMat::new_checked(dim, dim, col_ptr, None, row_idx);
         let slot = |r: usize, c: usize| {
             let (start, end) = (pattern.col_ptr()[c], pattern.col_ptr()[c + 1]);
             let rows = &pattern.row_idx()[start..end];

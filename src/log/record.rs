@@ -2,13 +2,20 @@
 //! the messages, fills zstd chunks and writes the file — the SLAM loop pays for a copy of the
 //! step and a queue push, not for JSON, compression or I/O (the design of a bag recorder).
 //!
-//! **Flush policy** (crash safety). The writer closes the open chunk — compressed, written to
-//! the sink, the sink flushed — after every loop closure (unless
+//! **Flush policy** (crash safety). The writer takes what is queued every millisecond (at once
+//! on [`Recorder::sync`] and `finish`), writes it, and closes the open chunk — compressed,
+//! written to the sink, the sink flushed — when the batch held a loop closure (unless
 //! [`LogOptions::flush_on_loop_closure`] is off), after at most [`LogOptions::flush_every`]
-//! steps, on [`Recorder::sync`] and at the end. Loop closures that queued up while the writer
-//! was busy share one flush (group commit): a step is on disk no later than under a flush per
-//! loop closure, and a writer that falls behind catches up instead of compressing a tiny chunk
-//! per step. A log cut at any byte holds every step whose chunk was closed before the cut.
+//! steps, on `sync` and at the end. Loop closures of one batch share one flush (group commit):
+//! a loop closure reaches the file within about a millisecond plus the writer's backlog, and a
+//! writer that falls behind catches up instead of compressing a tiny chunk per step. A log cut
+//! at any byte holds every step whose chunk was closed before the cut; `sync` waits until
+//! everything recorded so far is.
+//!
+//! **Snapshots** (`/so2lin/estimate`, `/graph`, `/poses`) are the poses of
+//! [`OnlineEstimator::poses`]. Periodic ones are solved by the writer on its replica of the
+//! graph from the estimator's wraps (same code), so the loop only pays for the wraps; the
+//! final one is solved and serialised on the caller's thread while the writer drains.
 //!
 //! The messages and their order do not depend on the writer's timing; only the chunk
 //! boundaries can, so replays are identical while the files' bytes may differ (the recorded
@@ -16,9 +23,10 @@
 
 use std::collections::BTreeMap;
 use std::path::Path;
-use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
-use std::sync::{Arc, Mutex};
+use std::sync::mpsc::{SyncSender, sync_channel};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::thread::JoinHandle;
+use std::time::Duration;
 
 use serde_json::Value;
 
@@ -26,16 +34,107 @@ use super::foxglove::{self, LogLine, PosesInFrame, SceneUpdate, Stamp, Style};
 use super::{
     EDGE_SCHEMA, ESTIMATE_SCHEMA, LogError, LogOptions, SCHEMA_VERSION, STEP_SCHEMA, Sink,
 };
-use crate::graph::Edge;
+use crate::estimate::OrientationEstimator;
+use crate::graph::{Edge, NodePolicy, Pose2, PoseGraph};
 use crate::online::{Decision, OnlineConfig, OnlineEstimator, Step, StepKind};
 
-/// Records a writer thread may hold back before `record` waits for it (back-pressure bounds
-/// the memory of a writer that cannot keep up).
-const QUEUE: usize = 4096;
+/// Records the queue may hold before `record` waits for the writer (back-pressure bounds the
+/// memory of a writer that cannot keep up).
+const QUEUE: usize = 16_384;
+
+/// How often an idle writer looks at the queue.
+const POLL: Duration = Duration::from_millis(1);
+
+/// The hand-off between the estimator's thread and the writer. Pushing a step takes an
+/// uncontended lock and never wakes the writer — std's channels wake a parked receiver on
+/// every send, a system call per step that cost more than the step itself; the writer looks
+/// every [`POLL`] instead, and is woken at once for `sync`, `finish` and a full queue.
+struct Queue {
+    inbox: Mutex<Inbox>,
+    wake: Condvar,
+    space: Condvar,
+}
+
+#[derive(Default)]
+struct Inbox {
+    records: Vec<Record>,
+    /// No more records will come.
+    closed: bool,
+    /// The writer stopped (on an error).
+    gone: bool,
+}
+
+fn lock(m: &Mutex<Inbox>) -> MutexGuard<'_, Inbox> {
+    m.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+impl Queue {
+    fn new() -> Self {
+        Self {
+            inbox: Mutex::new(Inbox::default()),
+            wake: Condvar::new(),
+            space: Condvar::new(),
+        }
+    }
+
+    /// Append a record; `urgent` wakes the writer. False when the writer is gone.
+    fn push(&self, record: Record, urgent: bool) -> bool {
+        let mut inbox = lock(&self.inbox);
+        while inbox.records.len() >= QUEUE && !inbox.gone {
+            self.wake.notify_one();
+            inbox = self
+                .space
+                .wait(inbox)
+                .unwrap_or_else(PoisonError::into_inner);
+        }
+        if inbox.gone {
+            return false;
+        }
+        inbox.records.push(record);
+        if urgent {
+            self.wake.notify_one();
+        }
+        true
+    }
+
+    /// No more records.
+    fn close(&self) {
+        lock(&self.inbox).closed = true;
+        self.wake.notify_one();
+    }
+
+    /// The writer: wait for records, move them all into `batch`; true once closed.
+    fn take(&self, batch: &mut Vec<Record>) -> bool {
+        let mut inbox = lock(&self.inbox);
+        while inbox.records.is_empty() && !inbox.closed {
+            inbox = self
+                .wake
+                .wait_timeout(inbox, POLL)
+                .unwrap_or_else(PoisonError::into_inner)
+                .0;
+        }
+        std::mem::swap(&mut inbox.records, batch);
+        let closed = inbox.closed;
+        drop(inbox);
+        self.space.notify_all();
+        closed
+    }
+
+    /// The writer stopped: drop what is queued and release a waiting producer.
+    fn gone(&self) {
+        let mut inbox = lock(&self.inbox);
+        inbox.gone = true;
+        inbox.records.clear();
+        drop(inbox);
+        self.space.notify_all();
+    }
+}
 
 /// Writes an online run to MCAP (see the [module docs](self) for the flush policy).
 pub struct Recorder {
-    tx: Option<SyncSender<Record>>,
+    queue: Arc<Queue>,
+    /// False once the writer stopped or a snapshot failed.
+    live: bool,
     worker: Option<JoinHandle<Result<u64, LogError>>>,
     failure: Arc<Mutex<Option<String>>>,
     options: LogOptions,
@@ -54,44 +153,87 @@ enum Record {
     Finish(Snapshot),
 }
 
-/// The estimate at one step, for `/so2lin/estimate`, `/graph` and `/poses`.
+/// What the writer needs for a snapshot (`/so2lin/estimate`, `/graph`, `/poses`): the
+/// estimate, and the chords of the ambiguous cycles. Periodic snapshots, taken inside the
+/// SLAM loop, carry only the estimator's current wraps: the writer solves for θ and the
+/// positions on its replica of the graph (built from the recorded edges) with the same code as
+/// [`OnlineEstimator::poses`], so the loop pays for the wraps alone. The final snapshot, taken
+/// after the loop, carries the poses themselves, computed by `poses()` on the estimator's
+/// thread while the writer drains its queue.
 struct Snapshot {
-    nodes: Vec<u64>,
-    theta: Vec<f64>,
-    pos: Vec<(f64, f64)>,
-    segments: [Vec<(usize, usize)>; 3],
+    estimate: Estimate,
+    flagged: Vec<usize>,
 }
 
+enum Estimate {
+    /// The estimator's wraps: the writer solves and encodes.
+    Wraps(Vec<i64>),
+    /// The messages, solved and encoded on the estimator's thread.
+    Encoded(Encoded),
+}
+
+/// The serialised `/so2lin/estimate`, `/graph` and `/poses` messages of a snapshot.
+struct Encoded([Vec<u8>; 3]);
+
 impl Snapshot {
-    fn of(est: &mut OnlineEstimator) -> Result<Self, LogError> {
-        let poses = est.poses().map_err(|e| LogError::Format(e.to_string()))?;
-        let theta = poses.iter().map(|p| p.theta).collect();
-        let pos = poses.iter().map(|p| (p.x, p.y)).collect();
-        let g = est.graph();
-        let nodes = g.nodes().iter().map(|n| n.id).collect();
-        let flagged: std::collections::BTreeSet<usize> = est
+    /// A periodic snapshot (`last == false`) or the final one, for log time `step`.
+    fn of(est: &mut OnlineEstimator, last: bool, step: u64) -> Result<Self, LogError> {
+        let format = |e: crate::online::OnlineError| LogError::Format(e.to_string());
+        let mut flagged: Vec<usize> = est
             .ambiguous()
             .iter()
             .map(|&c| est.cycles()[c].chord() as usize)
             .collect();
-        let mut segments: [Vec<(usize, usize)>; 3] = Default::default();
-        for (e, (&ends, edge)) in g.endpoints().iter().zip(g.edges()).enumerate() {
-            let style = if flagged.contains(&e) {
-                Style::Flagged
-            } else if edge.is_odometric() {
-                Style::Odometry
-            } else {
-                Style::LoopClosure
-            };
-            segments[style as usize].push(ends);
-        }
-        Ok(Self {
-            nodes,
-            theta,
-            pos,
-            segments,
-        })
+        flagged.sort_unstable();
+        let estimate = if last {
+            let poses = est.poses().map_err(format)?;
+            Estimate::Encoded(encode(step, est.graph(), &poses, &flagged)?)
+        } else {
+            Estimate::Wraps(est.wraps().map_err(format)?)
+        };
+        Ok(Self { estimate, flagged })
     }
+}
+
+/// Serialise a snapshot: the orientations, the graph's edges by style, the poses.
+fn encode(
+    step: u64,
+    graph: &PoseGraph,
+    poses: &[Pose2],
+    flagged: &[usize],
+) -> Result<Encoded, LogError> {
+    let theta: Vec<f64> = poses.iter().map(|p| p.theta).collect();
+    let pos: Vec<(f64, f64)> = poses.iter().map(|p| (p.x, p.y)).collect();
+    let nodes: Vec<u64> = graph.nodes().iter().map(|n| n.id).collect();
+    let mut segments: [Vec<(usize, usize)>; 3] = Default::default();
+    for (e, (&ends, edge)) in graph.endpoints().iter().zip(graph.edges()).enumerate() {
+        let style = if flagged.binary_search(&e).is_ok() {
+            Style::Flagged
+        } else if edge.is_odometric() {
+            Style::Odometry
+        } else {
+            Style::LoopClosure
+        };
+        segments[style as usize].push(ends);
+    }
+    #[derive(serde::Serialize)]
+    struct EstimateMsg<'a> {
+        step: u64,
+        nodes: &'a [u64],
+        theta: &'a [f64],
+    }
+    fn json<T: serde::Serialize>(v: &T) -> Result<Vec<u8>, LogError> {
+        serde_json::to_vec(v).map_err(|e| LogError::Format(e.to_string()))
+    }
+    Ok(Encoded([
+        json(&EstimateMsg {
+            step,
+            nodes: &nodes,
+            theta: &theta,
+        })?,
+        json(&SceneUpdate::graph(step, &segments, &pos))?,
+        json(&PosesInFrame::new(step, &pos, &theta))?,
+    ]))
 }
 
 impl Recorder {
@@ -166,6 +308,7 @@ impl Recorder {
         mcap.flush()?;
         let writer = Writer {
             mcap,
+            graph: PoseGraph::new(),
             channels,
             options,
             steps: 0,
@@ -173,17 +316,18 @@ impl Recorder {
             pending: false,
             buf: Vec::with_capacity(1024),
         };
-        let (tx, rx) = sync_channel(QUEUE);
+        let queue = Arc::new(Queue::new());
         let failure = Arc::new(Mutex::new(None));
-        let fail = Arc::clone(&failure);
+        let (fail, q) = (Arc::clone(&failure), Arc::clone(&queue));
         let worker = std::thread::Builder::new()
             .name("so2lin-log".into())
             .spawn(move || {
-                let result = writer.run(&rx);
-                if let Err(e) = &result
-                    && let Ok(mut f) = fail.lock()
-                {
-                    *f = Some(describe(e));
+                let result = writer.run(&q);
+                if let Err(e) = &result {
+                    if let Ok(mut f) = fail.lock() {
+                        *f = Some(describe(e));
+                    }
+                    q.gone();
                 }
                 result
             })
@@ -192,7 +336,8 @@ impl Recorder {
                 source,
             })?;
         Ok(Self {
-            tx: Some(tx),
+            queue,
+            live: true,
             worker: Some(worker),
             failure,
             options,
@@ -200,31 +345,30 @@ impl Recorder {
         })
     }
 
-    fn send(&mut self, record: Record) {
-        // A closed queue means the writer stopped on an error, kept in `failure`.
-        if let Some(tx) = &self.tx
-            && tx.send(record).is_err()
-        {
-            self.tx = None;
+    fn send(&mut self, record: Record, urgent: bool) {
+        // A writer that is gone stopped on an error, kept in `failure`.
+        if self.live && !self.queue.push(record, urgent) {
+            self.live = false;
         }
     }
 
     /// Record one step: its input edge, its outcome with the latency, and a snapshot when due.
     /// Errors are kept (see [`error`](Self::error)); recording never fails a step.
     pub fn record(&mut self, edge: &Edge, step: &Step, latency_ns: u64, est: &mut OnlineEstimator) {
-        if self.tx.is_none() {
+        if !self.live {
             return;
         }
-        self.send(Record::Step {
+        let record = Record::Step {
             edge: *edge,
             step: step.clone(),
             latency_ns,
-        });
+        };
+        self.send(record, false);
         self.steps += 1;
         let every = self.options.snapshot_every as u64;
         if every > 0 && self.steps.is_multiple_of(every) {
-            match Snapshot::of(est) {
-                Ok(s) => self.send(Record::Snapshot(s)),
+            match Snapshot::of(est, false, self.steps) {
+                Ok(s) => self.send(Record::Snapshot(s), false),
                 Err(e) => self.fail(e),
             }
         }
@@ -234,13 +378,13 @@ impl Recorder {
         if let Ok(mut f) = self.failure.lock() {
             f.get_or_insert(describe(&e));
         }
-        self.tx = None;
+        self.live = false;
     }
 
     /// Block until every step recorded so far is written and its chunk flushed to the sink.
     pub fn sync(&mut self) -> Result<(), LogError> {
         let (reply, done) = sync_channel(1);
-        self.send(Record::Sync(reply));
+        self.send(Record::Sync(reply), true);
         done.recv().map_err(|_| {
             LogError::Format(
                 self.error()
@@ -257,11 +401,11 @@ impl Recorder {
     /// Write the final snapshot and the summary, close the file, and return the number of
     /// steps recorded.
     pub fn finish(mut self, est: &mut OnlineEstimator) -> Result<u64, LogError> {
-        match Snapshot::of(est) {
-            Ok(s) => self.send(Record::Finish(s)),
+        match Snapshot::of(est, true, self.steps) {
+            Ok(s) => self.send(Record::Finish(s), true),
             Err(e) => self.fail(e),
         }
-        self.tx = None;
+        self.queue.close();
         let result = match self.worker.take().map(JoinHandle::join) {
             Some(Ok(r)) => r,
             Some(Err(_)) => Err(LogError::Format("the log writer thread panicked".into())),
@@ -292,7 +436,7 @@ impl Drop for Recorder {
     /// Without [`finish`](Recorder::finish), the writer still flushes what it holds and writes
     /// the summary (no final snapshot).
     fn drop(&mut self) {
-        self.tx = None;
+        self.queue.close();
         if let Some(w) = self.worker.take() {
             let _ = w.join();
         }
@@ -309,6 +453,8 @@ const POSES: usize = 5;
 /// The writer thread's state.
 struct Writer {
     mcap: mcap::Writer<Box<dyn Sink>>,
+    /// The recorded edges, as the estimator holds them (same order, same dense indices).
+    graph: PoseGraph,
     channels: [u16; 6],
     options: LogOptions,
     steps: u64,
@@ -320,38 +466,40 @@ struct Writer {
 }
 
 impl Writer {
-    /// Take records until the queue closes or `Finish` arrives; flush for pending loop
-    /// closures whenever the queue runs empty (group commit).
-    fn run(mut self, rx: &Receiver<Record>) -> Result<u64, LogError> {
-        while let Ok(first) = rx.recv() {
-            let mut next = Some(first);
-            while let Some(record) = next {
+    /// Take records until the queue closes or `Finish` arrives; after each batch, flush for
+    /// the loop closures in it (group commit).
+    fn run(mut self, queue: &Queue) -> Result<u64, LogError> {
+        let mut batch = Vec::new();
+        loop {
+            let closed = queue.take(&mut batch);
+            for record in batch.drain(..) {
                 match record {
                     Record::Step {
                         edge,
                         step,
                         latency_ns,
                     } => self.step(&edge, &step, latency_ns)?,
-                    Record::Snapshot(s) => self.snapshot(&s)?,
+                    Record::Snapshot(s) => self.snapshot(s)?,
                     Record::Sync(reply) => {
                         self.flush()?;
                         // The caller may have stopped waiting; nothing to do then.
                         let _ = reply.send(());
                     }
                     Record::Finish(s) => {
-                        self.snapshot(&s)?;
+                        self.snapshot(s)?;
                         self.mcap.finish()?;
                         return Ok(self.steps);
                     }
                 }
-                next = rx.try_recv().ok();
             }
             if self.pending {
                 self.flush()?;
             }
+            if closed {
+                self.mcap.finish()?;
+                return Ok(self.steps);
+            }
         }
-        self.mcap.finish()?;
-        Ok(self.steps)
     }
 
     fn flush(&mut self) -> Result<(), LogError> {
@@ -367,15 +515,24 @@ impl Writer {
         channel: usize,
         value: &T,
     ) -> Result<(), LogError> {
-        self.buf.clear();
-        serde_json::to_writer(&mut self.buf, value).map_err(|e| LogError::Format(e.to_string()))?;
+        let mut buf = std::mem::take(&mut self.buf);
+        buf.clear();
+        let written = serde_json::to_writer(&mut buf, value)
+            .map_err(|e| LogError::Format(e.to_string()))
+            .and_then(|()| self.write(channel, &buf));
+        self.buf = buf;
+        written
+    }
+
+    /// Write one message on `channel` at the current log time.
+    fn write(&mut self, channel: usize, data: &[u8]) -> Result<(), LogError> {
         let header = mcap::records::MessageHeader {
             channel_id: self.channels[channel],
             sequence: self.steps as u32,
             log_time: self.steps,
             publish_time: self.steps,
         };
-        self.mcap.write_to_known_channel(&header, &self.buf)?;
+        self.mcap.write_to_known_channel(&header, data)?;
         Ok(())
     }
 
@@ -392,6 +549,9 @@ impl Writer {
     }
 
     fn step(&mut self, edge: &Edge, step: &Step, latency_ns: u64) -> Result<(), LogError> {
+        self.graph
+            .add_edge(*edge, NodePolicy::CreateUnknown)
+            .map_err(|e| LogError::Format(e.to_string()))?;
         self.put(EDGE, &EdgeMsg::new(self.steps, edge))?;
         let msg = StepMsg {
             step: self.steps,
@@ -436,21 +596,22 @@ impl Writer {
         Ok(())
     }
 
-    fn snapshot(&mut self, s: &Snapshot) -> Result<(), LogError> {
-        #[derive(serde::Serialize)]
-        struct Estimate<'a> {
-            step: u64,
-            nodes: &'a [u64],
-            theta: &'a [f64],
-        }
-        let msg = Estimate {
-            step: self.steps,
-            nodes: &s.nodes,
-            theta: &s.theta,
+    fn snapshot(&mut self, s: Snapshot) -> Result<(), LogError> {
+        let encoded = match s.estimate {
+            Estimate::Encoded(e) => e,
+            Estimate::Wraps(k) => {
+                let format = |e: crate::estimate::EstimateError| LogError::Format(e.to_string());
+                let theta = OrientationEstimator::new(&self.graph)
+                    .map_err(format)?
+                    .orientations(&k);
+                let poses = crate::estimate::poses(&self.graph, &theta).map_err(format)?;
+                encode(self.steps, &self.graph, &poses, &s.flagged)?
+            }
         };
-        self.put(ESTIMATE, &msg)?;
-        self.put(GRAPH, &SceneUpdate::graph(self.steps, &s.segments, &s.pos))?;
-        self.put(POSES, &PosesInFrame::new(self.steps, &s.pos, &s.theta))
+        let [estimate, graph, poses] = encoded.0;
+        self.write(ESTIMATE, &estimate)?;
+        self.write(GRAPH, &graph)?;
+        self.write(POSES, &poses)
     }
 }
 
