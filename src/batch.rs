@@ -111,7 +111,7 @@ pub fn solve(
     let wraps = result.wraps(h)?;
     let theta = orient.orientations(&wraps);
     let chi2_orientation = orient.cost(&theta, &wraps);
-    let linear = crate::estimate::poses(graph, &theta)?;
+    let linear = orient.poses(graph, &theta)?;
     let cost_linear = crate::refine::cost(graph, &linear);
     let refined = crate::refine::refine(graph, &linear, refine)?;
     Ok(Solution {

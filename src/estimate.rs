@@ -49,6 +49,8 @@ pub struct EstimateError(pub String);
 /// Factored orientation system of a graph.
 pub struct OrientationEstimator {
     anchored: Anchored,
+    /// The Laplacian's pattern and symbolic factorisation, reused by [`Self::poses`].
+    system: NormalEquations<1>,
     ends: Vec<(usize, usize)>,
     weight: Vec<f64>,
     delta: Vec<f64>,
@@ -67,6 +69,7 @@ impl OrientationEstimator {
         }
         Ok(Self {
             llt: ne.factor(0.0)?,
+            system: ne,
             anchored,
             ends: graph.endpoints().to_vec(),
             weight,
@@ -111,6 +114,27 @@ impl OrientationEstimator {
             .sum()
     }
 
+    /// Poses for orientations θ of the graph this system was built from: θ with the
+    /// least-squares [`positions`], reusing this system's ordering when the translation
+    /// information is isotropic.
+    pub fn poses(&self, graph: &PoseGraph, theta: &[f64]) -> Result<Vec<Pose2>, EstimateError> {
+        if graph.node_count() != self.anchored.var_of.len()
+            || graph.edge_count() != self.ends.len()
+            || theta.len() != graph.node_count()
+        {
+            return Err(EstimateError(format!(
+                "poses: the system has {} nodes and {} edges, the graph {} and {}, θ {} entries",
+                self.anchored.var_of.len(),
+                self.ends.len(),
+                graph.node_count(),
+                graph.edge_count(),
+                theta.len()
+            )));
+        }
+        let pos = positions_with(graph, theta, &self.anchored, Some(&self.system))?;
+        Ok(with_headings(pos, theta))
+    }
+
     /// Marginal variance `(P_θ)_vv` of node v (0 for an anchor): one sparse solve.
     pub fn variance(&self, node: usize) -> f64 {
         let Some(&v) = self.anchored.var_of.get(node) else {
@@ -132,7 +156,16 @@ impl OrientationEstimator {
 /// data), `R Ω_t Rᵀ = w I` and the problem splits exactly into x and y with one shared
 /// weighted Laplacian: one n × n factorisation and two solves instead of a 2n × 2n system.
 pub fn positions(graph: &PoseGraph, theta: &[f64]) -> Result<Vec<(f64, f64)>, EstimateError> {
-    let anchored = Anchored::new(graph);
+    positions_with(graph, theta, &Anchored::new(graph), None)
+}
+
+/// [`positions`], reusing a Laplacian pattern and ordering of the same graph when given.
+fn positions_with(
+    graph: &PoseGraph,
+    theta: &[f64],
+    anchored: &Anchored,
+    laplacian: Option<&NormalEquations<1>>,
+) -> Result<Vec<(f64, f64)>, EstimateError> {
     let rotated = |edge: &crate::graph::Edge, a: usize| {
         let m = edge.measurement();
         let (s, c) = theta[a].sin_cos();
@@ -146,7 +179,11 @@ pub fn positions(graph: &PoseGraph, theta: &[f64]) -> Result<Vec<(f64, f64)>, Es
         if v == ANCHOR { 0.0 } else { x[d * v + i] }
     };
     if isotropic {
-        let mut ne = NormalEquations::<1>::new(graph, &anchored)?;
+        let mut ne = match laplacian {
+            Some(l) => l.clone(),
+            None => NormalEquations::<1>::new(graph, anchored)?,
+        };
+        ne.clear();
         let (mut bx, mut by) = (Col::zeros(ne.dim()), Col::zeros(ne.dim()));
         for (e, (edge, &(a, b))) in graph.edges().iter().zip(graph.endpoints()).enumerate() {
             let w = edge.information().translation_information()[0][0];
@@ -169,7 +206,7 @@ pub fn positions(graph: &PoseGraph, theta: &[f64]) -> Result<Vec<(f64, f64)>, Es
             .map(|&v| (at(&x, v, 1, 0), at(&y, v, 1, 0)))
             .collect());
     }
-    let mut ne = NormalEquations::<2>::new(graph, &anchored)?;
+    let mut ne = NormalEquations::<2>::new(graph, anchored)?;
     const MINUS: [[f64; 2]; 2] = [[-1.0, 0.0], [0.0, -1.0]];
     const PLUS: [[f64; 2]; 2] = [[1.0, 0.0], [0.0, 1.0]];
     for (e, (edge, &(a, _))) in graph.edges().iter().zip(graph.endpoints()).enumerate() {
@@ -197,11 +234,14 @@ pub fn positions(graph: &PoseGraph, theta: &[f64]) -> Result<Vec<(f64, f64)>, Es
 
 /// Poses from orientations θ: θ with the least-squares [`positions`].
 pub fn poses(graph: &PoseGraph, theta: &[f64]) -> Result<Vec<Pose2>, EstimateError> {
-    Ok(positions(graph, theta)?
-        .into_iter()
+    Ok(with_headings(positions(graph, theta)?, theta))
+}
+
+fn with_headings(pos: Vec<(f64, f64)>, theta: &[f64]) -> Vec<Pose2> {
+    pos.into_iter()
         .zip(theta)
         .map(|((x, y), &t)| Pose2::new(x, y, t))
-        .collect())
+        .collect()
 }
 
 /// Dead reckoning: the measured relative poses composed along the odometric spanning tree

@@ -523,11 +523,16 @@ impl OnlineEstimator {
     }
 
     /// Current poses of all nodes (dense index order): the current orientations with their
-    /// least-squares positions ([`crate::estimate::poses`]; anchors at the origin). Computed on
-    /// demand: one sparse 2n × 2n solve.
+    /// least-squares positions ([`OrientationEstimator::poses`]; anchors at the origin).
+    /// Computed on demand: one sparse solve (two, with the orientation system, after a new
+    /// cycle).
     pub fn poses(&mut self) -> Result<Vec<crate::graph::Pose2>, OnlineError> {
         let theta = self.orientations()?.to_vec();
-        Ok(crate::estimate::poses(&self.graph, &theta)?)
+        self.ensure_solver()?;
+        match &self.solver {
+            Some(solver) => Ok(solver.poses(&self.graph, &theta)?),
+            None => Err(OnlineError::Numerical("no solver".into())),
+        }
     }
 
     /// Current orientation of a node (None for an unknown node).

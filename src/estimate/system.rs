@@ -63,6 +63,9 @@ impl Anchored {
 }
 
 /// `H` and `g` of a graph for `D` unknowns per node, with a cached symbolic factorisation.
+/// Cloning keeps the pattern and the symbolic factorisation (shared), so a clone assembles
+/// and factors other values of the same graph without a new ordering.
+#[derive(Clone)]
 pub(crate) struct NormalEquations<const D: usize> {
     var_of: Vec<usize>,
     ends: Vec<(usize, usize)>,

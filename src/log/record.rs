@@ -601,10 +601,9 @@ impl Writer {
             Estimate::Encoded(e) => e,
             Estimate::Wraps(k) => {
                 let format = |e: crate::estimate::EstimateError| LogError::Format(e.to_string());
-                let theta = OrientationEstimator::new(&self.graph)
-                    .map_err(format)?
-                    .orientations(&k);
-                let poses = crate::estimate::poses(&self.graph, &theta).map_err(format)?;
+                let solver = OrientationEstimator::new(&self.graph).map_err(format)?;
+                let theta = solver.orientations(&k);
+                let poses = solver.poses(&self.graph, &theta).map_err(format)?;
                 encode(self.steps, &self.graph, &poses, &s.flagged)?
             }
         };
