@@ -158,6 +158,20 @@ fn bench_queries(c: &mut Criterion) {
             BatchSize::PerIteration,
         )
     });
+    group.bench_function("poses_after_loop_closure", |b| {
+        b.iter_batched(
+            || {
+                let mut est = streamed(prefix);
+                est.orientations().expect("solves");
+                est
+            },
+            |mut est| {
+                est.add_edge(closure).expect("accepted");
+                est.poses().map(|p| p.len()).expect("solves")
+            },
+            BatchSize::PerIteration,
+        )
+    });
     let mut est = streamed(&edges);
     est.orientations().expect("solves");
     let mut prev = edges
