@@ -144,34 +144,32 @@ fn bench_queries(c: &mut Criterion) {
     let (prefix, closure) = (&edges[..cut], edges[cut]);
     let mut group = c.benchmark_group("query/M3500");
     group.sample_size(20);
-    group.bench_function("orientations_after_loop_closure", |b| {
-        b.iter_batched(
-            || {
-                let mut est = streamed(prefix);
-                est.orientations().expect("solves");
-                est
-            },
-            |mut est| {
-                est.add_edge(closure).expect("accepted");
-                est.orientations().map(|t| t.len()).expect("solves")
-            },
-            BatchSize::PerIteration,
-        )
-    });
-    group.bench_function("poses_after_loop_closure", |b| {
-        b.iter_batched(
-            || {
-                let mut est = streamed(prefix);
-                est.orientations().expect("solves");
-                est
-            },
-            |mut est| {
-                est.add_edge(closure).expect("accepted");
-                est.poses().map(|p| p.len()).expect("solves")
-            },
-            BatchSize::PerIteration,
-        )
-    });
+    // A query right after a loop closure: one factorisation (and the positions' solve).
+    type Query = fn(&mut OnlineEstimator) -> usize;
+    let queries: [(&str, Query); 2] = [
+        ("orientations_after_loop_closure", |est| {
+            est.orientations().map(|t| t.len()).expect("solves")
+        }),
+        ("poses_after_loop_closure", |est| {
+            est.poses().map(|p| p.len()).expect("solves")
+        }),
+    ];
+    for (name, query) in queries {
+        group.bench_function(name, |b| {
+            b.iter_batched(
+                || {
+                    let mut est = streamed(prefix);
+                    est.orientations().expect("solves");
+                    est
+                },
+                |mut est| {
+                    est.add_edge(closure).expect("accepted");
+                    query(&mut est)
+                },
+                BatchSize::PerIteration,
+            )
+        });
+    }
     let mut est = streamed(&edges);
     est.orientations().expect("solves");
     let mut prev = edges

@@ -14,15 +14,9 @@ use so2lin::wraps::gamma_of;
 
 #[test]
 fn mcb_is_lightest_and_approximation_within_bound_on_every_dataset() {
-    let Some(dir) = common::datasets_dir() else {
+    let Some((dir, names)) = common::dataset_names() else {
         return;
     };
-    let mut names: Vec<String> = std::fs::read_dir(&dir)
-        .unwrap()
-        .filter_map(|e| e.ok()?.file_name().into_string().ok())
-        .filter(|n| !n.ends_with(".md"))
-        .collect();
-    names.sort();
     let mut checked = 0;
     for name in names {
         let (g, _) = read_graph(dir.join(&name), ReadOptions::default()).unwrap();

@@ -70,15 +70,9 @@ fn compare(name: &str, graph: &PoseGraph, edges: &[Edge], cfg: ScreeningConfig) 
 
 #[test]
 fn datasets_stream_to_the_batch_answer() {
-    let Some(dir) = common::datasets_dir() else {
+    let Some((dir, names)) = common::dataset_names() else {
         return;
     };
-    let mut names: Vec<String> = std::fs::read_dir(&dir)
-        .unwrap()
-        .filter_map(|e| e.ok()?.file_name().into_string().ok())
-        .filter(|n| !n.ends_with(".md"))
-        .collect();
-    names.sort();
     let mut compared = 0;
     for name in names {
         let path = dir.join(&name);

@@ -48,3 +48,16 @@ pub fn dataset(name: &str) -> Option<PathBuf> {
     eprintln!("skipping: {} not found", path.display());
     None
 }
+
+/// The names of the files in the datasets folder (its `.md` notes left out), sorted; `None`
+/// (skip) as for [`datasets_dir`].
+pub fn dataset_names() -> Option<(PathBuf, Vec<String>)> {
+    let dir = datasets_dir()?;
+    let mut names: Vec<String> = std::fs::read_dir(&dir)
+        .unwrap()
+        .filter_map(|e| e.ok()?.file_name().into_string().ok())
+        .filter(|n| !n.ends_with(".md"))
+        .collect();
+    names.sort();
+    Some((dir, names))
+}

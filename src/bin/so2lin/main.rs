@@ -85,6 +85,33 @@ impl ScreeningArgs {
     }
 }
 
+/// The input graph and the batch settings shared by `screen` and `solve`.
+#[derive(clap::Args)]
+struct BatchArgs {
+    /// Graph file (g2o or TORO).
+    file: PathBuf,
+    /// Cycle basis.
+    #[arg(long, value_enum, default_value = "incremental")]
+    basis: BasisKind,
+    #[command(flatten)]
+    screening: ScreeningArgs,
+    /// Family-wise level: per-cycle α/ℓ (Bonferroni).
+    #[arg(long)]
+    family_wise: bool,
+    /// Information-matrix order of edge lines (default: detect).
+    #[arg(long, value_enum, default_value = "auto")]
+    order: OrderArg,
+}
+
+impl BatchArgs {
+    fn config(&self) -> BatchConfig {
+        BatchConfig {
+            basis: self.basis,
+            screening: self.screening.config(self.family_wise),
+        }
+    }
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Counts and noise statistics of a g2o / TORO graph file.
@@ -121,38 +148,19 @@ enum Command {
     },
     /// Screen the cycle integers of a graph with the paper's batch pipeline.
     Screen {
-        /// Graph file (g2o or TORO).
-        file: PathBuf,
-        /// Cycle basis.
-        #[arg(long, value_enum, default_value = "incremental")]
-        basis: BasisKind,
         #[command(flatten)]
-        screening: ScreeningArgs,
-        /// Family-wise level: per-cycle α/ℓ (Bonferroni).
-        #[arg(long)]
-        family_wise: bool,
+        batch: BatchArgs,
         /// Write `node_id theta` lines of the best hypothesis (radians, unwrapped, anchor 0).
         #[arg(long)]
         orientations: Option<PathBuf>,
-        /// Information-matrix order of edge lines (default: detect).
-        #[arg(long, value_enum, default_value = "auto")]
-        order: OrderArg,
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
     },
     /// Screening, orientations, least-squares positions and SE(2) refinement: full poses.
     Solve {
-        /// Graph file (g2o or TORO).
-        file: PathBuf,
-        /// Cycle basis.
-        #[arg(long, value_enum, default_value = "incremental")]
-        basis: BasisKind,
         #[command(flatten)]
-        screening: ScreeningArgs,
-        /// Family-wise level: per-cycle α/ℓ (Bonferroni).
-        #[arg(long)]
-        family_wise: bool,
+        batch: BatchArgs,
         /// Refinement: at most this many Levenberg–Marquardt iterations (0: linear poses only).
         #[arg(long, default_value_t = 5)]
         refine: usize,
@@ -168,9 +176,6 @@ enum Command {
         /// Write the best refined poses and the edges as g2o.
         #[arg(long)]
         out: Option<PathBuf>,
-        /// Information-matrix order of edge lines (default: detect).
-        #[arg(long, value_enum, default_value = "auto")]
-        order: OrderArg,
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
@@ -348,24 +353,17 @@ fn main() -> ExitCode {
             size: (width, height),
         }),
         Command::Solve {
-            file,
-            basis,
-            screening,
-            family_wise,
+            batch,
             refine,
             tolerance,
             all_hypotheses,
             odometry,
             out,
-            order,
             json,
         } => solve::run(solve::SolveArgs {
-            file: &file,
-            order: order.into(),
-            config: BatchConfig {
-                basis,
-                screening: screening.config(family_wise),
-            },
+            file: &batch.file,
+            order: batch.order.into(),
+            config: batch.config(),
             refine: so2lin::refine::RefineConfig {
                 iterations: refine,
                 relative_decrease: tolerance,
@@ -389,26 +387,16 @@ fn main() -> ExitCode {
             json,
         }),
         Command::Screen {
-            file,
-            basis,
-            screening,
-            family_wise,
+            batch,
             orientations,
-            order,
             json,
-        } => {
-            let s = screening.config(family_wise);
-            screen::run(screen::ScreenArgs {
-                file: &file,
-                order: order.into(),
-                config: BatchConfig {
-                    basis,
-                    screening: s,
-                },
-                orientations: orientations.as_deref(),
-                json,
-            })
-        }
+        } => screen::run(screen::ScreenArgs {
+            file: &batch.file,
+            order: batch.order.into(),
+            config: batch.config(),
+            orientations: orientations.as_deref(),
+            json,
+        }),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
