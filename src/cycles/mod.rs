@@ -122,9 +122,9 @@ pub enum BasisKind {
     Mst,
     /// The incremental basis (chord + least-σ² path through the graph so far, in file order).
     Incremental,
-    /// The exact minimum cycle basis w.r.t. σ² ([`mcb`]).
+    /// The exact minimum cycle basis w.r.t. σ² (module `mcb`).
     Mcb,
-    /// The (2k−1)-approximate minimum cycle basis with k = 2 ([`approx`]).
+    /// The (2k−1)-approximate minimum cycle basis with k = 2 (module `approx`).
     McbApprox,
 }
 
@@ -165,7 +165,7 @@ impl CycleBasis {
         })
     }
 
-    /// The exact minimum cycle basis w.r.t. σ² ([`mcb`]), in [triangular order](Self::ordered).
+    /// The exact minimum cycle basis w.r.t. σ² (module `mcb`), in [triangular order](Self::ordered).
     pub fn minimum(graph: &PoseGraph, deadline: Option<Instant>) -> Result<Self, McbError> {
         let sigma2: Vec<f64> = graph.edges().iter().map(|e| e.sigma2()).collect();
         let cycles =
