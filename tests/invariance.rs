@@ -1,8 +1,9 @@
 //! The estimate does not depend on node labels, on 2π added to a measurement, or on the
-//! direction an edge is written in (swap its ends, invert its measurement).
+//! direction an edge is written in (swap its ends, invert its measurement); the full poses
+//! (positions and refinement) do not depend on labels or on 2π added to measurements.
 
 use proptest::prelude::*;
-use so2lin::batch::{BatchConfig, screen};
+use so2lin::batch::{BatchConfig, screen, solve};
 use so2lin::cycles::BasisKind;
 use so2lin::estimate::OrientationEstimator;
 use so2lin::graph::{Edge, NodePolicy, Pose2, PoseGraph};
@@ -41,6 +42,16 @@ fn rebuild(
         out.add_edge(e, NodePolicy::RequireKnown).unwrap();
     }
     out
+}
+
+/// Refined poses of the best hypothesis (incremental basis, 5 iterations).
+fn best_poses(g: &PoseGraph) -> Vec<Pose2> {
+    let r = screen(g, &BatchConfig::default()).unwrap();
+    let orient = OrientationEstimator::new(g).unwrap();
+    solve(g, &r, &orient, &r.hypotheses[0], &Default::default())
+        .unwrap()
+        .refined
+        .poses
 }
 
 fn assert_same_wrapped(a: &[f64], b: &[f64]) -> Result<(), TestCaseError> {
@@ -102,6 +113,26 @@ proptest! {
         });
         for basis in [BasisKind::Incremental, BasisKind::Mst, BasisKind::Odometric] {
             assert_same_wrapped(&best_orientations(&g, basis), &best_orientations(&reversed, basis))?;
+        }
+    }
+
+    #[test]
+    fn poses_do_not_depend_on_labels_or_turns(poses in 20usize..150, seed in any::<u64>(),
+                                              sigma in 0.01f64..0.15, mult in 1u64..1_000,
+                                              pick in any::<prop::sample::Index>(), turns in -3i32..=3) {
+        let g = world(poses, seed, sigma);
+        let target = pick.index(g.edge_count());
+        let edited = rebuild(&g, |id| id * (2 * mult + 1) + 7, |k, e| {
+            if k != target { return *e; }
+            let m = e.measurement();
+            let m = Pose2::new(m.x, m.y, m.theta + TAU * f64::from(turns));
+            Edge::new(e.from(), e.to(), m, e.information()).unwrap()
+        });
+        let (a, b) = (best_poses(&g), best_poses(&edited));
+        prop_assert_eq!(a.len(), b.len());
+        for (p, q) in a.iter().zip(&b) {
+            prop_assert!((p.x - q.x).abs() < 1e-7 && (p.y - q.y).abs() < 1e-7, "{:?} vs {:?}", p, q);
+            prop_assert!(wrap_angle(p.theta - q.theta).abs() < 1e-8);
         }
     }
 }
