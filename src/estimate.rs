@@ -1,5 +1,5 @@
 //! Orientation and position estimates for a hypothesis (METHOD.md §5, §8; the positions follow
-//! the paper's reference [2], LAGO).
+//! the paper's reference \[2\], LAGO).
 //!
 //! **Orientations.** For wraps k, the maximum-likelihood orientations are
 //!

@@ -6,7 +6,7 @@
 //! | topic | content |
 //! |---|---|
 //! | `/so2lin/edge` | every input edge exactly as given: ids, dx, dy, dθ, the information matrix |
-//! | `/so2lin/step` | every step's outcome (the online [`Step`]) and its latency in ns |
+//! | `/so2lin/step` | every step's outcome (the online [`Step`](crate::online::Step)) and its latency in ns |
 //! | `/so2lin/estimate` | orientation snapshots every N steps and at the end |
 //! | `/so2lin/log` | human-readable events as `foxglove.Log` |
 //! | `/graph` | `foxglove.SceneUpdate`: odometry and loop-closure edges as line lists, ambiguous loops highlighted (with each snapshot) |
@@ -88,6 +88,7 @@ pub(crate) const STEP_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/dra
 pub(crate) const ESTIMATE_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/draft/2020-12/schema","title":"so2lin.Estimate","type":"object","required":["step","nodes","theta"],"properties":{"step":{"type":"integer","minimum":0},"nodes":{"type":"array","items":{"type":"integer","minimum":0}},"theta":{"description":"orientation of each node, radians, unwrapped, anchors 0","type":"array","items":{"type":"number"}}}}"##;
 
 mod foxglove;
+mod queue;
 mod record;
 
 pub use record::Recorder;

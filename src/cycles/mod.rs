@@ -298,7 +298,7 @@ impl CycleBasis {
 
 /// The incremental cycle basis, grown one edge at a time (METHOD.md §7).
 ///
-/// The path is found by the shared [`dijkstra`] search from one end, stopped when the other
+/// The path is found by the shared Dijkstra search (module `dijkstra`) from one end, stopped when the other
 /// end is settled, on the graph as it has grown so far.
 #[derive(Clone, Debug, Default)]
 pub struct IncrementalBasis {

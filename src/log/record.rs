@@ -24,13 +24,13 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::mpsc::{SyncSender, sync_channel};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
+use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
-use std::time::Duration;
 
 use serde_json::Value;
 
 use super::foxglove::{self, LogLine, PosesInFrame, SceneUpdate, Stamp, Style};
+use super::queue::Queue;
 use super::{
     EDGE_SCHEMA, ESTIMATE_SCHEMA, LogError, LogOptions, SCHEMA_VERSION, STEP_SCHEMA, Sink,
 };
@@ -38,101 +38,9 @@ use crate::estimate::OrientationEstimator;
 use crate::graph::{Edge, NodePolicy, Pose2, PoseGraph};
 use crate::online::{Decision, OnlineConfig, OnlineEstimator, Step, StepKind};
 
-/// Records the queue may hold before `record` waits for the writer (back-pressure bounds the
-/// memory of a writer that cannot keep up).
-const QUEUE: usize = 16_384;
-
-/// How often an idle writer looks at the queue.
-const POLL: Duration = Duration::from_millis(1);
-
-/// The hand-off between the estimator's thread and the writer. Pushing a step takes an
-/// uncontended lock and never wakes the writer — std's channels wake a parked receiver on
-/// every send, a system call per step that cost more than the step itself; the writer looks
-/// every [`POLL`] instead, and is woken at once for `sync`, `finish` and a full queue.
-struct Queue {
-    inbox: Mutex<Inbox>,
-    wake: Condvar,
-    space: Condvar,
-}
-
-#[derive(Default)]
-struct Inbox {
-    records: Vec<Record>,
-    /// No more records will come.
-    closed: bool,
-    /// The writer stopped (on an error).
-    gone: bool,
-}
-
-fn lock(m: &Mutex<Inbox>) -> MutexGuard<'_, Inbox> {
-    m.lock().unwrap_or_else(PoisonError::into_inner)
-}
-
-impl Queue {
-    fn new() -> Self {
-        Self {
-            inbox: Mutex::new(Inbox::default()),
-            wake: Condvar::new(),
-            space: Condvar::new(),
-        }
-    }
-
-    /// Append a record; `urgent` wakes the writer. False when the writer is gone.
-    fn push(&self, record: Record, urgent: bool) -> bool {
-        let mut inbox = lock(&self.inbox);
-        while inbox.records.len() >= QUEUE && !inbox.gone {
-            self.wake.notify_one();
-            inbox = self
-                .space
-                .wait(inbox)
-                .unwrap_or_else(PoisonError::into_inner);
-        }
-        if inbox.gone {
-            return false;
-        }
-        inbox.records.push(record);
-        if urgent {
-            self.wake.notify_one();
-        }
-        true
-    }
-
-    /// No more records.
-    fn close(&self) {
-        lock(&self.inbox).closed = true;
-        self.wake.notify_one();
-    }
-
-    /// The writer: wait for records, move them all into `batch`; true once closed.
-    fn take(&self, batch: &mut Vec<Record>) -> bool {
-        let mut inbox = lock(&self.inbox);
-        while inbox.records.is_empty() && !inbox.closed {
-            inbox = self
-                .wake
-                .wait_timeout(inbox, POLL)
-                .unwrap_or_else(PoisonError::into_inner)
-                .0;
-        }
-        std::mem::swap(&mut inbox.records, batch);
-        let closed = inbox.closed;
-        drop(inbox);
-        self.space.notify_all();
-        closed
-    }
-
-    /// The writer stopped: drop what is queued and release a waiting producer.
-    fn gone(&self) {
-        let mut inbox = lock(&self.inbox);
-        inbox.gone = true;
-        inbox.records.clear();
-        drop(inbox);
-        self.space.notify_all();
-    }
-}
-
-/// Writes an online run to MCAP (see the [module docs](self) for the flush policy).
+/// Writes an online run to MCAP (flush policy and threads: [`crate::log`]).
 pub struct Recorder {
-    queue: Arc<Queue>,
+    queue: Arc<Queue<Record>>,
     /// False once the writer stopped or a snapshot failed.
     live: bool,
     worker: Option<JoinHandle<Result<u64, LogError>>>,
@@ -468,7 +376,7 @@ struct Writer {
 impl Writer {
     /// Take records until the queue closes or `Finish` arrives; after each batch, flush for
     /// the loop closures in it (group commit).
-    fn run(mut self, queue: &Queue) -> Result<u64, LogError> {
+    fn run(mut self, queue: &Queue<Record>) -> Result<u64, LogError> {
         let mut batch = Vec::new();
         loop {
             let closed = queue.take(&mut batch);
