@@ -46,6 +46,8 @@ pub struct BatchResult {
     pub model: GammaModel,
     /// The screening result.
     pub screened: Screened,
+    /// `C k = γ` for this basis, analysed once (integrality included).
+    pub solver: WrapSolver,
     /// Set when the requested basis could not be used and the incremental basis replaced it
     /// (a minimum basis that is not integral, METHOD.md §5).
     pub fallback: Option<BasisFallback>,
@@ -65,7 +67,7 @@ impl std::ops::Deref for BatchResult {
 impl BatchResult {
     /// The wraps k of every edge for a hypothesis (`k = [0; C_L⁻¹ γ]`).
     pub fn wraps(&self, h: &Hypothesis) -> Result<Vec<i64>, WrapError> {
-        WrapSolver::new(&self.basis.cycles, self.edges)?
+        self.solver
             .wraps(&self.basis.cycles, &self.screened.gamma(h))
     }
 }
@@ -133,9 +135,12 @@ pub struct BasisFallback {
     pub reason: String,
 }
 
+/// A basis with its wrap solver, and why the requested one was replaced, if it was.
+pub type IntegralBasis = (CycleBasis, WrapSolver, Option<BasisFallback>);
+
 /// Build the requested basis; a basis that is not integral (or not a basis) is replaced by
 /// the incremental basis, which always is, so no γ can give fractional wraps.
-pub fn integral_basis(graph: &PoseGraph, kind: BasisKind) -> (CycleBasis, Option<BasisFallback>) {
+pub fn integral_basis(graph: &PoseGraph, kind: BasisKind) -> Result<IntegralBasis, WrapError> {
     usable_or_incremental(graph, kind, CycleBasis::try_build(graph, kind, None))
 }
 
@@ -144,11 +149,11 @@ fn usable_or_incremental(
     graph: &PoseGraph,
     kind: BasisKind,
     built: Result<CycleBasis, McbError>,
-) -> (CycleBasis, Option<BasisFallback>) {
+) -> Result<IntegralBasis, WrapError> {
     let reason = match built {
         Err(e) => e.to_string(),
         Ok(basis) => match basis.wrap_solver(graph.edge_count()) {
-            Ok(s) if s.is_integral() => return (basis, None),
+            Ok(s) if s.is_integral() => return Ok((basis, s, None)),
             Ok(s) => format!("|det C_L| = {}: not integral", s.abs_det()),
             Err(e) => e.to_string(),
         },
@@ -157,7 +162,9 @@ fn usable_or_incremental(
         requested: kind,
         reason,
     };
-    (CycleBasis::incremental(graph), Some(fallback))
+    let basis = CycleBasis::incremental(graph);
+    let solver = basis.wrap_solver(graph.edge_count())?;
+    Ok((basis, solver, Some(fallback)))
 }
 
 /// Why the pipeline stopped.
@@ -169,6 +176,9 @@ pub enum BatchError {
     /// P_γ numerically singular.
     #[error(transparent)]
     Singular(#[from] SingularError),
+    /// The basis has no wrap solver (never for the incremental basis of a valid graph).
+    #[error(transparent)]
+    Wraps(#[from] WrapError),
 }
 
 /// Screen a γ model to the end from the screener's current state: the first screening to its
@@ -198,7 +208,7 @@ pub(crate) fn run_screening(
 pub fn screen(graph: &PoseGraph, config: &BatchConfig) -> Result<BatchResult, BatchError> {
     config.screening.validate()?;
     let t0 = Instant::now();
-    let (basis, fallback) = integral_basis(graph, config.basis);
+    let (basis, solver, fallback) = integral_basis(graph, config.basis)?;
     let basis_seconds = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
     let sigma2: Vec<f64> = graph.edges().iter().map(|e| e.sigma2()).collect();
@@ -211,6 +221,7 @@ pub fn screen(graph: &PoseGraph, config: &BatchConfig) -> Result<BatchResult, Ba
         basis,
         model,
         screened,
+        solver,
         fallback,
         basis_seconds,
         screening_seconds: t1.elapsed().as_secs_f64(),
@@ -244,16 +255,16 @@ mod tests {
             kind: BasisKind::Mcb,
             cycles: cycles.to_vec(),
         };
-        let (basis, fallback) = usable_or_incremental(&g, BasisKind::Mcb, Ok(hand));
+        let (basis, _, fallback) = usable_or_incremental(&g, BasisKind::Mcb, Ok(hand)).unwrap();
         assert_eq!(basis.kind, BasisKind::Incremental);
         let f = fallback.unwrap();
         assert_eq!(f.requested, BasisKind::Mcb);
         assert!(f.reason.contains("|det C_L| = 2"), "{}", f.reason);
         // The real minimum basis of K4 (three triangles) is integral and kept.
-        let (basis, fallback) = integral_basis(&g, BasisKind::Mcb);
+        let (basis, _, fallback) = integral_basis(&g, BasisKind::Mcb).unwrap();
         assert_eq!((basis.kind, fallback), (BasisKind::Mcb, None));
-        let (_, fallback) =
-            usable_or_incremental(&g, BasisKind::McbApprox, Err(McbError::Deadline));
+        let (_, _, fallback) =
+            usable_or_incremental(&g, BasisKind::McbApprox, Err(McbError::Deadline)).unwrap();
         assert!(fallback.unwrap().reason.contains("budget"));
     }
 }

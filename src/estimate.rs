@@ -84,21 +84,12 @@ impl OrientationEstimator {
 
     /// θ* for wraps k (one entry per node, anchors 0; unwrapped).
     pub fn orientations(&self, wraps: &[i64]) -> Vec<f64> {
-        let var_of = &self.anchored.var_of;
-        let mut rhs = Col::<f64>::zeros(self.anchored.free);
-        for (e, &(a, b)) in self.ends.iter().enumerate() {
-            let y = self.weight[e] * (self.delta[e] - TAU * wraps[e] as f64);
-            if var_of[b] != ANCHOR {
-                rhs[var_of[b]] += y;
-            }
-            if var_of[a] != ANCHOR {
-                rhs[var_of[a]] -= y;
-            }
-        }
+        let rhs = self.anchored.scatter(&self.ends, |e| {
+            self.weight[e] * (self.delta[e] - TAU * wraps[e] as f64)
+        });
         let x = solve(self.llt.as_ref(), &rhs);
-        var_of
-            .iter()
-            .map(|&v| if v == ANCHOR { 0.0 } else { x[v] })
+        (0..self.anchored.var_of.len())
+            .map(|v| self.anchored.value(&x, v, 1, 0))
             .collect()
     }
 
@@ -175,35 +166,29 @@ fn positions_with(
         let o = e.information().translation_information();
         o[0][1] == 0.0 && o[0][0] == o[1][1]
     });
-    let at = |x: &Col<f64>, v: usize, d: usize, i: usize| {
-        if v == ANCHOR { 0.0 } else { x[d * v + i] }
-    };
+    let nodes = anchored.var_of.len();
     if isotropic {
         let mut ne = match laplacian {
             Some(l) => l.clone(),
             None => NormalEquations::<1>::new(graph, anchored)?,
         };
         ne.clear();
-        let (mut bx, mut by) = (Col::zeros(ne.dim()), Col::zeros(ne.dim()));
-        for (e, (edge, &(a, b))) in graph.edges().iter().zip(graph.endpoints()).enumerate() {
+        let mut weighted = Vec::with_capacity(graph.edge_count());
+        for (e, (edge, &(a, _))) in graph.edges().iter().zip(graph.endpoints()).enumerate() {
             let w = edge.information().translation_information()[0][0];
             ne.add(e, &[[-1.0]], &[[1.0]], &[[w]], &[0.0]);
             let (t, _) = rotated(edge, a);
-            for (rhs, t) in [(&mut bx, t[0]), (&mut by, t[1])] {
-                if anchored.var_of[b] != ANCHOR {
-                    rhs[anchored.var_of[b]] += w * t;
-                }
-                if anchored.var_of[a] != ANCHOR {
-                    rhs[anchored.var_of[a]] -= w * t;
-                }
-            }
+            weighted.push([w * t[0], w * t[1]]);
         }
         let llt = ne.factor(0.0)?;
-        let (x, y) = (solve(llt.as_ref(), &bx), solve(llt.as_ref(), &by));
-        return Ok(anchored
-            .var_of
-            .iter()
-            .map(|&v| (at(&x, v, 1, 0), at(&y, v, 1, 0)))
+        let [x, y] = [0, 1].map(|i| {
+            solve(
+                llt.as_ref(),
+                &anchored.scatter(graph.endpoints(), |e| weighted[e][i]),
+            )
+        });
+        return Ok((0..nodes)
+            .map(|v| (anchored.value(&x, v, 1, 0), anchored.value(&y, v, 1, 0)))
             .collect());
     }
     let mut ne = NormalEquations::<2>::new(graph, anchored)?;
@@ -225,10 +210,8 @@ fn positions_with(
     }
     let llt = ne.factor(0.0)?;
     let x = solve(llt.as_ref(), &ne.rhs());
-    Ok(anchored
-        .var_of
-        .iter()
-        .map(|&v| (at(&x, v, 2, 0), at(&x, v, 2, 1)))
+    Ok((0..nodes)
+        .map(|v| (anchored.value(&x, v, 2, 0), anchored.value(&x, v, 2, 1)))
         .collect())
 }
 

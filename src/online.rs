@@ -580,11 +580,15 @@ impl OnlineEstimator {
             &basis,
         )
         .map_err(|e| OnlineError::Numerical(e.to_string()))?;
+        let solver = basis
+            .wrap_solver(self.graph.edge_count())
+            .map_err(|e| OnlineError::Numerical(e.to_string()))?;
         Ok(BatchResult {
             edges: self.graph.edge_count(),
             basis,
             model: self.model.clone(),
             screened,
+            solver,
             fallback: None,
             basis_seconds: 0.0,
             screening_seconds: 0.0,

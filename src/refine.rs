@@ -142,17 +142,10 @@ pub fn refine(
         let step = solve(llt.as_ref(), &ne.rhs());
         let trial: Vec<Pose2> = x
             .iter()
-            .zip(&anchored.var_of)
-            .map(|(p, &v)| {
-                if v == crate::estimate::ANCHOR {
-                    *p
-                } else {
-                    Pose2::new(
-                        p.x + step[3 * v],
-                        p.y + step[3 * v + 1],
-                        p.theta + step[3 * v + 2],
-                    )
-                }
+            .enumerate()
+            .map(|(v, p)| {
+                let d = |i| anchored.value(&step, v, 3, i);
+                Pose2::new(p.x + d(0), p.y + d(1), p.theta + d(2))
             })
             .collect();
         let ct = cost(graph, &trial);

@@ -44,6 +44,22 @@ pub enum WrapError {
         /// The cycle whose equation did not divide exactly.
         cycle: usize,
     },
+    /// A cycle is empty or names an edge outside `0..edges`.
+    #[error("cycle {cycle} is empty or names an edge outside 0..{edges}")]
+    Edge {
+        /// The cycle.
+        cycle: usize,
+        /// Number of edges.
+        edges: usize,
+    },
+    /// The cycles given to [`WrapSolver::wraps`] are not as many as those it analysed.
+    #[error("{got} cycles given, the solver analysed {want}")]
+    Cycles {
+        /// Cycles given.
+        got: usize,
+        /// Cycles analysed.
+        want: usize,
+    },
     /// γ has the wrong length.
     #[error("γ has {got} entries, the basis has {want} cycles")]
     Length {
@@ -76,7 +92,19 @@ struct General {
 #[derive(Clone, Debug)]
 pub struct WrapSolver {
     edges: usize,
+    cycles: usize,
     general: Option<General>,
+}
+
+/// Every cycle non-empty, every edge in `0..edges`.
+fn check_edges(cycles: &[Cycle], edges: usize) -> Result<(), WrapError> {
+    match cycles
+        .iter()
+        .position(|c| c.terms.is_empty() || c.terms.iter().any(|t| t.edge as usize >= edges))
+    {
+        Some(cycle) => Err(WrapError::Edge { cycle, edges }),
+        None => Ok(()),
+    }
 }
 
 /// Whether `cycles` are triangular as given: distinct chords `terms[0]` with sign +1, and no
@@ -106,17 +134,18 @@ impl WrapSolver {
     /// Analyse `cycles` over `edges` edges: fails only if they are not independent (or the
     /// exact elimination overflows).
     pub fn new(cycles: &[Cycle], edges: usize) -> Result<Self, WrapError> {
-        if is_triangular(cycles, edges) {
-            return Ok(Self {
-                edges,
-                general: None,
-            });
-        }
-        let (core, peeled) = peel(cycles, edges);
-        let core = IntegerLu::new(cycles, &core)?;
+        check_edges(cycles, edges)?;
+        let general = if is_triangular(cycles, edges) {
+            None
+        } else {
+            let (core, peeled) = peel(cycles, edges);
+            let core = IntegerLu::new(cycles, &core)?;
+            Some(General { core, peeled })
+        };
         Ok(Self {
             edges,
-            general: Some(General { core, peeled }),
+            cycles: cycles.len(),
+            general,
         })
     }
 
@@ -141,7 +170,15 @@ impl WrapSolver {
     }
 
     /// An integer k with `C k = γ`: `k = [0; C_L⁻¹ γ]` for the basis' chords (tree edges 0).
+    /// `cycles` must be the cycles the solver was built from.
     pub fn wraps(&self, cycles: &[Cycle], gamma: &[i64]) -> Result<Vec<i64>, WrapError> {
+        if cycles.len() != self.cycles {
+            return Err(WrapError::Cycles {
+                got: cycles.len(),
+                want: self.cycles,
+            });
+        }
+        check_edges(cycles, self.edges)?;
         if gamma.len() != cycles.len() {
             return Err(WrapError::Length {
                 got: gamma.len(),
@@ -236,6 +273,42 @@ mod tests {
         assert!(matches!(
             WrapSolver::new(&twice, 4),
             Err(WrapError::Dependent { .. })
+        ));
+    }
+
+    #[test]
+    fn foreign_cycles_are_errors_not_panics() {
+        let w = simulate(&SimConfig::new(60, 2)).unwrap();
+        let m = w.graph.edge_count();
+        let b = CycleBasis::build(&w.graph, BasisKind::Incremental);
+        // An edge beyond the graph.
+        assert_eq!(
+            WrapSolver::new(&b.cycles, m - 1).err(),
+            Some(WrapError::Edge {
+                cycle: b
+                    .cycles
+                    .iter()
+                    .position(|c| c.terms.iter().any(|t| t.edge as usize == m - 1))
+                    .unwrap(),
+                edges: m - 1
+            })
+        );
+        let solver = WrapSolver::new(&b.cycles, m).unwrap();
+        let gamma = vec![0; b.cycles.len()];
+        // Fewer cycles than analysed.
+        assert_eq!(
+            solver.wraps(&b.cycles[1..], &gamma[1..]).err(),
+            Some(WrapError::Cycles {
+                got: b.cycles.len() - 1,
+                want: b.cycles.len()
+            })
+        );
+        // Same count, an edge out of range.
+        let mut bad = b.cycles.clone();
+        bad[0].terms[0].edge = m as u32;
+        assert!(matches!(
+            solver.wraps(&bad, &gamma),
+            Err(WrapError::Edge { cycle: 0, .. })
         ));
     }
 }

@@ -475,6 +475,13 @@ fn invalid_input_is_a_typed_error() {
         approximate_minimum_cycle_basis(2, &[(0, 1), (1, 0)], &[1.0, 1.0], 0, None),
         Err(McbError::Stretch { k: 0 })
     ));
+    assert!(matches!(
+        minimum_cycle_basis(2, &[(0, 1), (1, 0)], &[1.0], None),
+        Err(McbError::Length {
+            ends: 2,
+            weights: 1
+        })
+    ));
     // A deadline already passed stops the search.
     let g = varied(
         unit(

@@ -14,129 +14,125 @@
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 
+/// The shrinking multigraph of the reduction rules.
+struct Residual {
+    edges: Vec<(u32, u32)>,
+    alive: Vec<bool>,
+    inc: Vec<Vec<u32>>,
+    deg: Vec<u32>,
+    removed: Vec<bool>,
+    /// Nodes whose degree dropped to ≤ 2 (to look at again).
+    small: Vec<u32>,
+    /// (degree, node) of every node, with stale entries skipped on pop.
+    heap: BinaryHeap<(u32, Reverse<u32>)>,
+}
+
+impl Residual {
+    fn new(nodes: usize, ends: &[(u32, u32)]) -> Self {
+        let mut inc: Vec<Vec<u32>> = vec![Vec::new(); nodes];
+        for (e, &(a, b)) in ends.iter().enumerate() {
+            inc[a as usize].push(e as u32);
+            inc[b as usize].push(e as u32);
+        }
+        let deg: Vec<u32> = inc.iter().map(|l| l.len() as u32).collect();
+        let heap = (0..nodes).map(|v| (deg[v], Reverse(v as u32))).collect();
+        let small = (0..nodes as u32)
+            .rev()
+            .filter(|&v| deg[v as usize] <= 2)
+            .collect();
+        Self {
+            edges: ends.to_vec(),
+            alive: vec![true; ends.len()],
+            inc,
+            deg,
+            removed: vec![false; nodes],
+            small,
+            heap,
+        }
+    }
+
+    /// The other end of edge `e` at node `v`.
+    fn other(&self, e: u32, v: usize) -> u32 {
+        let (a, b) = self.edges[e as usize];
+        if a as usize == v { b } else { a }
+    }
+
+    /// Delete node v with its edges (rule 1, or v taken into the set).
+    fn remove(&mut self, v: usize) {
+        self.removed[v] = true;
+        for i in 0..self.inc[v].len() {
+            let e = self.inc[v][i];
+            if !self.alive[e as usize] {
+                continue;
+            }
+            self.alive[e as usize] = false;
+            let u = self.other(e, v) as usize;
+            self.deg[u] -= 1;
+            if !self.removed[u] {
+                if self.deg[u] <= 2 {
+                    self.small.push(u as u32);
+                }
+                self.heap.push((self.deg[u], Reverse(u as u32)));
+            }
+        }
+        self.deg[v] = 0;
+    }
+
+    /// Rule 3 for a degree-2 node v: bypass it by an edge `a–b`, or take `a` when both edges
+    /// go to `a`; returns the node taken.
+    fn bypass(&mut self, v: usize) -> Option<u32> {
+        let two: Vec<u32> = self.inc[v]
+            .iter()
+            .copied()
+            .filter(|&e| self.alive[e as usize])
+            .collect();
+        let (a, b) = (self.other(two[0], v), self.other(two[1], v));
+        if a == b {
+            self.remove(a as usize);
+            return Some(a);
+        }
+        self.alive[two[0] as usize] = false;
+        self.alive[two[1] as usize] = false;
+        self.removed[v] = true;
+        self.deg[v] = 0;
+        let id = self.edges.len() as u32;
+        self.edges.push((a, b));
+        self.alive.push(true);
+        self.inc[a as usize].push(id);
+        self.inc[b as usize].push(id);
+        None
+    }
+
+    /// The node of largest remaining degree (ties: smallest index).
+    fn largest(&mut self) -> Option<u32> {
+        while let Some((d, Reverse(v))) = self.heap.pop() {
+            if !self.removed[v as usize] && self.deg[v as usize] == d {
+                return Some(v);
+            }
+        }
+        None
+    }
+}
+
 /// Nodes meeting every cycle of the multigraph `(nodes, ends)` (no self-loops), ascending.
 pub(crate) fn feedback_vertex_set(nodes: usize, ends: &[(u32, u32)]) -> Vec<u32> {
-    let mut edges: Vec<(u32, u32)> = ends.to_vec();
-    let mut alive = vec![true; edges.len()];
-    let mut inc: Vec<Vec<u32>> = vec![Vec::new(); nodes];
-    for (e, &(a, b)) in ends.iter().enumerate() {
-        inc[a as usize].push(e as u32);
-        inc[b as usize].push(e as u32);
-    }
-    let mut deg: Vec<u32> = inc.iter().map(|l| l.len() as u32).collect();
-    let mut removed = vec![false; nodes];
-    let mut heap: BinaryHeap<(u32, Reverse<u32>)> =
-        (0..nodes).map(|v| (deg[v], Reverse(v as u32))).collect();
-    let mut small: Vec<u32> = (0..nodes as u32)
-        .rev()
-        .filter(|&v| deg[v as usize] <= 2)
-        .collect();
+    let mut g = Residual::new(nodes, ends);
     let mut fvs = Vec::new();
-
-    // Delete node v with its edges (rule 1, or v taken into the set).
-    let remove = |v: usize,
-                  edges: &[(u32, u32)],
-                  alive: &mut [bool],
-                  inc: &[Vec<u32>],
-                  deg: &mut [u32],
-                  removed: &mut [bool],
-                  small: &mut Vec<u32>,
-                  heap: &mut BinaryHeap<(u32, Reverse<u32>)>| {
-        removed[v] = true;
-        for &e in &inc[v] {
-            if !alive[e as usize] {
-                continue;
-            }
-            alive[e as usize] = false;
-            let (a, b) = edges[e as usize];
-            let u = if a as usize == v { b } else { a } as usize;
-            deg[u] -= 1;
-            if !removed[u] {
-                if deg[u] <= 2 {
-                    small.push(u as u32);
-                }
-                heap.push((deg[u], Reverse(u as u32)));
-            }
-        }
-        deg[v] = 0;
-    };
-
     loop {
-        while let Some(v) = small.pop() {
+        while let Some(v) = g.small.pop() {
             let v = v as usize;
-            if removed[v] {
+            if g.removed[v] {
                 continue;
             }
-            if deg[v] <= 1 {
-                remove(
-                    v,
-                    &edges,
-                    &mut alive,
-                    &inc,
-                    &mut deg,
-                    &mut removed,
-                    &mut small,
-                    &mut heap,
-                );
-                continue;
-            }
-            if deg[v] != 2 {
-                continue;
-            }
-            let two: Vec<u32> = inc[v]
-                .iter()
-                .copied()
-                .filter(|&e| alive[e as usize])
-                .collect();
-            let other = |e: u32| {
-                let (a, b) = edges[e as usize];
-                if a as usize == v { b } else { a }
-            };
-            let (a, b) = (other(two[0]), other(two[1]));
-            if a == b {
-                fvs.push(a);
-                remove(
-                    a as usize,
-                    &edges,
-                    &mut alive,
-                    &inc,
-                    &mut deg,
-                    &mut removed,
-                    &mut small,
-                    &mut heap,
-                );
-            } else {
-                alive[two[0] as usize] = false;
-                alive[two[1] as usize] = false;
-                removed[v] = true;
-                deg[v] = 0;
-                let id = edges.len() as u32;
-                edges.push((a, b));
-                alive.push(true);
-                inc[a as usize].push(id);
-                inc[b as usize].push(id);
+            match g.deg[v] {
+                0 | 1 => g.remove(v),
+                2 => fvs.extend(g.bypass(v)),
+                _ => {}
             }
         }
-        // The largest remaining degree (stale heap entries are skipped).
-        let mut pick = None;
-        while let Some((d, Reverse(v))) = heap.pop() {
-            if !removed[v as usize] && deg[v as usize] == d {
-                pick = Some(v);
-                break;
-            }
-        }
-        let Some(v) = pick else { break };
+        let Some(v) = g.largest() else { break };
         fvs.push(v);
-        remove(
-            v as usize,
-            &edges,
-            &mut alive,
-            &inc,
-            &mut deg,
-            &mut removed,
-            &mut small,
-            &mut heap,
-        );
+        g.remove(v as usize);
     }
     fvs.sort_unstable();
     fvs

@@ -75,6 +75,14 @@ pub enum McbError {
         /// The edge.
         edge: usize,
     },
+    /// Not one weight per edge.
+    #[error("{ends} edges but {weights} weights")]
+    Length {
+        /// Edges given.
+        ends: usize,
+        /// Weights given.
+        weights: usize,
+    },
     /// An edge names a node outside `0..nodes`.
     #[error("edge {edge} names a node outside 0..{nodes}")]
     Node {
@@ -106,6 +114,12 @@ pub(crate) fn checked(
     ends: &[(usize, usize)],
     weights: &[f64],
 ) -> Result<Vec<(u32, u32)>, McbError> {
+    if ends.len() != weights.len() {
+        return Err(McbError::Length {
+            ends: ends.len(),
+            weights: weights.len(),
+        });
+    }
     ends.iter()
         .zip(weights)
         .enumerate()

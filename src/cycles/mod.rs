@@ -201,8 +201,16 @@ impl CycleBasis {
     /// designated edge is `terms[0]` with sign `+1`. When there is no core,
     /// [`WrapSolver`] takes its forward-substitution path. Orientation changes the sign of a
     /// row of C, not the basis, its weight or its integrality.
+    ///
+    /// `edges` is the graph's edge count; edge indices beyond it only enlarge the scratch
+    /// space (the wrap solver reports them).
     pub fn ordered(kind: BasisKind, cycles: Vec<Cycle>, edges: usize) -> Self {
-        let (core, peeled) = integral::peel(&cycles, edges);
+        let used = cycles
+            .iter()
+            .flat_map(|c| c.terms.iter().map(|t| t.edge as usize + 1))
+            .max()
+            .unwrap_or(0);
+        let (core, peeled) = integral::peel(&cycles, edges.max(used));
         let mut out: Vec<Cycle> = core.iter().map(|&t| cycles[t as usize].clone()).collect();
         for d in peeled {
             let c = &cycles[d.cycle as usize];

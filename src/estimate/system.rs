@@ -62,6 +62,32 @@ impl Anchored {
     }
 }
 
+impl Anchored {
+    /// The right-hand side `Σ_e y_e (u_b − u_a)` of a scalar Laplacian system (edge e from a
+    /// to b, anchors dropped).
+    pub fn scatter(&self, ends: &[(usize, usize)], y: impl Fn(usize) -> f64) -> Col<f64> {
+        let mut rhs = Col::<f64>::zeros(self.free);
+        for (e, &(a, b)) in ends.iter().enumerate() {
+            let y = y(e);
+            if self.var_of[b] != ANCHOR {
+                rhs[self.var_of[b]] += y;
+            }
+            if self.var_of[a] != ANCHOR {
+                rhs[self.var_of[a]] -= y;
+            }
+        }
+        rhs
+    }
+
+    /// Unknown `i` of node `v` in a solution with `d` unknowns per node (0 for an anchor).
+    pub fn value(&self, x: &Col<f64>, v: usize, d: usize, i: usize) -> f64 {
+        match self.var_of[v] {
+            ANCHOR => 0.0,
+            u => x[d * u + i],
+        }
+    }
+}
+
 /// `H` and `g` of a graph for `D` unknowns per node, with a cached symbolic factorisation.
 /// Cloning keeps the pattern and the symbolic factorisation (shared), so a clone assembles
 /// and factors other values of the same graph without a new ordering.
@@ -206,12 +232,18 @@ impl<const D: usize> NormalEquations<D> {
         if self.dim() == 0 {
             return Ok(None);
         }
-        let mut values = self.values.clone();
-        if lambda > 0.0 {
+        // The damped copy only when damping: H itself stays for the next λ.
+        let damped;
+        let values = if lambda > 0.0 {
+            let mut v = self.values.clone();
             for &s in &self.diagonal {
-                values[s] += lambda * self.values[s];
+                v[s] += lambda * self.values[s];
             }
-        }
+            damped = v;
+            &damped
+        } else {
+            &self.values
+        };
         let symbolic = match &self.symbolic {
             Some(s) => s.clone(),
             None => {
@@ -221,7 +253,7 @@ impl<const D: usize> NormalEquations<D> {
                 s
             }
         };
-        let h = SparseColMatRef::new(self.pattern.as_ref(), &values);
+        let h = SparseColMatRef::new(self.pattern.as_ref(), values);
         Llt::try_new_with_symbolic(symbolic, h, Side::Lower)
             .map(Some)
             .map_err(|e| EstimateError(format!("{e:?}")))

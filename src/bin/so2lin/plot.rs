@@ -70,9 +70,7 @@ fn register_font() -> bool {
 }
 
 pub fn run(args: PlotArgs) -> Result<(), String> {
-    let head = std::fs::read(args.input)
-        .map(|b| b.starts_with(mcap::MAGIC))
-        .map_err(|e| format!("{}: {e}", args.input.display()))?;
+    let head = is_mcap(args.input).map_err(|e| format!("{}: {e}", args.input.display()))?;
     let (graph, solved) = if head {
         from_log(args.input, &args.refine, args.all_hypotheses)?
     } else {
@@ -106,6 +104,16 @@ pub fn plot_solved(
     Ok(panels.len())
 }
 
+/// Whether the file starts with the MCAP magic (only its first bytes are read).
+fn is_mcap(path: &Path) -> std::io::Result<bool> {
+    use std::io::Read;
+    let mut head = Vec::with_capacity(mcap::MAGIC.len());
+    std::fs::File::open(path)?
+        .take(mcap::MAGIC.len() as u64)
+        .read_to_end(&mut head)?;
+    Ok(head == mcap::MAGIC)
+}
+
 /// Replay a log's edges through the online estimator and screen its final state.
 fn from_log(
     path: &Path,
@@ -129,35 +137,35 @@ fn from_log(
 
 fn panels(graph: &PoseGraph, solved: &Solved) -> Vec<Panel> {
     let r = &solved.screening;
+    // Style of every edge: odometry 0, loop closure 1, chord of an ambiguous cycle 2, of an
+    // inconsistent cycle 3.
+    let mut style: Vec<usize> = graph
+        .edges()
+        .iter()
+        .map(|e| if e.is_odometric() { 0 } else { 1 })
+        .collect();
     let chord = |c: usize| r.basis.cycles[c].chord() as usize;
-    let ambiguous: Vec<usize> = r.ambiguous.iter().map(|&c| chord(c)).collect();
-    let inconsistent: Vec<usize> = r.inconsistent.iter().map(|c| chord(c.cycle)).collect();
+    for &c in &r.ambiguous {
+        style[chord(c)] = 2;
+    }
+    for c in &r.inconsistent {
+        style[chord(c.cycle)] = 3;
+    }
+    let mut segments: [Vec<(usize, usize)>; 4] = Default::default();
+    for (&st, &ends) in style.iter().zip(graph.endpoints()) {
+        segments[st].push(ends);
+    }
     solved
         .solutions
         .iter()
-        .map(|(i, s)| {
-            let mut segments: [Vec<(usize, usize)>; 4] = Default::default();
-            for (e, (edge, &ends)) in graph.edges().iter().zip(graph.endpoints()).enumerate() {
-                let style = if inconsistent.contains(&e) {
-                    3
-                } else if ambiguous.contains(&e) {
-                    2
-                } else if edge.is_odometric() {
-                    0
-                } else {
-                    1
-                };
-                segments[style].push(ends);
-            }
-            Panel {
-                pos: s.refined.poses.iter().map(|p| (p.x, p.y)).collect(),
-                segments,
-                title: format!(
-                    "hypothesis {i}: cost {:.4e} (χ²θ {:.1})",
-                    s.refined.cost(),
-                    s.chi2_orientation
-                ),
-            }
+        .map(|(i, s)| Panel {
+            pos: s.refined.poses.iter().map(|p| (p.x, p.y)).collect(),
+            segments: segments.clone(),
+            title: format!(
+                "hypothesis {i}: cost {:.4e} (χ²θ {:.1})",
+                s.refined.cost(),
+                s.chi2_orientation
+            ),
         })
         .collect()
 }
