@@ -38,7 +38,7 @@ use crate::cycles::{BasisKind, Cycle, CycleBasis, IncrementalBasis};
 use crate::estimate::EstimateError;
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
-use crate::gamma::{GammaModel, Moments};
+use crate::gamma::{Conditioner, GammaModel, Moments};
 use crate::graph::{Edge, GraphError, Information, NodeId, NodePolicy, Pose2, PoseGraph};
 use crate::screening::{
     ConfigError, Hypothesis, Interval, Screener, ScreeningConfig, rounding_success,
@@ -238,8 +238,21 @@ pub struct OnlineEstimator {
     theta: Vec<f64>,
     /// Nonzeros per row of L right after the last reordering.
     fill_after_reorder: f64,
+    /// A renewal of L in progress.
+    renewal: Option<CondRenewal>,
+    /// Steps that waited for a renewal of L.
+    cond_waits: usize,
     /// MCAP recorder, when attached.
     recorder: Option<Box<crate::log::Recorder>>,
+}
+
+/// A renewal of the P_UU factor built beside the live one ([`OnlineEstimator::maybe_reorder`]).
+struct CondRenewal {
+    handle: Option<std::thread::JoinHandle<Option<Conditioner>>>,
+    fresh: Option<Conditioner>,
+    /// Determinations (positions in the live factor's order) replayed into `fresh`.
+    replayed: usize,
+    ready_at: u64,
 }
 
 /// Below this many determined cycles L is never reordered (chronological fill is cheap).
@@ -273,6 +286,8 @@ impl OnlineEstimator {
             users: Vec::new(),
             theta: Vec::new(),
             fill_after_reorder: f64::INFINITY,
+            renewal: None,
+            cond_waits: 0,
             recorder: None,
         })
     }
@@ -444,6 +459,7 @@ impl OnlineEstimator {
 
     /// End of a step: the factors' renewals advance, counters refresh.
     fn after_step(&mut self) {
+        self.advance_reorder();
         self.heads.after_step();
         self.positions.after_step();
         self.refresh_counters();
@@ -538,10 +554,18 @@ impl OnlineEstimator {
         out.sort_by_key(|x| x.cycle);
     }
 
-    /// Rebuild the factor of P_UU in a fill-reducing order when appending in chronological
-    /// order has made it much denser than a reordered one would be (amortised: its fill per row must
-    /// grow by half first). Conditional moments are unchanged.
+    /// Renew the factor of P_UU in a fill-reducing order when appending in chronological
+    /// order has made it much denser than a reordered one would be (amortised: its fill per
+    /// row must grow by half first). Conditional moments do not depend on the order. The new
+    /// factor is built **beside** the live one on another thread, from a snapshot of the
+    /// determined cycles, collected a fixed number of steps later (a step count, so the run
+    /// is deterministic whatever the threads' timing; a step waits only if the builder is
+    /// still busy then), brought up to date with the determinations made since, a few per
+    /// step, and then swapped in: no step rebuilds the factor.
     fn maybe_reorder(&mut self) {
+        if self.renewal.is_some() {
+            return;
+        }
         let rows = self.screener.cond.len();
         if rows < REORDER_MIN_ROWS {
             return;
@@ -555,9 +579,71 @@ impl OnlineEstimator {
         if per_row <= REORDER_FILL_RATIO * base.max(1.0) {
             return;
         }
-        if self.screener.cond.reorder(&self.model, 0).is_err() {
+        let determined = self.screener.cond.determined();
+        let model = self.model.clone();
+        let delay = laplacian::MIN_DELAY.max(
+            (self.screener.cond.factor_nnz() as f64 * laplacian::DELAY_PER_ROW) as u64,
+        );
+        let job = move || Conditioner::rebuilt(&model, &determined, 0).ok();
+        let (handle, fresh) = match std::thread::Builder::new()
+            .name("so2lin-reorder".into())
+            .spawn(job)
+        {
+            Ok(h) => (Some(h), None),
+            Err(_) => (
+                None,
+                Conditioner::rebuilt(&self.model, &self.screener.cond.determined(), 0).ok(),
+            ),
+        };
+        self.renewal = Some(CondRenewal {
+            handle,
+            fresh,
+            replayed: rows,
+            ready_at: self.counters.steps as u64 + delay,
+        });
+    }
+
+    /// Advance a renewal of the P_UU factor (see [`Self::maybe_reorder`]).
+    fn advance_reorder(&mut self) {
+        let Some(r) = &mut self.renewal else { return };
+        if r.fresh.is_none() {
+            if (self.counters.steps as u64) < r.ready_at {
+                return;
+            }
+            let Some(h) = r.handle.take() else {
+                self.renewal = None;
+                return;
+            };
+            if !h.is_finished() {
+                self.cond_waits += 1;
+            }
+            match h.join() {
+                Ok(Some(f)) => r.fresh = Some(f),
+                _ => {
+                    self.renewal = None;
+                    return;
+                }
+            }
+        }
+        let Some(fresh) = &mut r.fresh else { return };
+        let live = &self.screener.cond;
+        let end = (r.replayed + laplacian::REPLAY_PER_STEP).min(live.len());
+        for &c in &live.order()[r.replayed..end] {
+            let c = c as usize;
+            let v = live.value(c).unwrap_or(0);
+            if fresh.determine(&self.model, c, v).is_err() {
+                self.renewal = None;
+                return;
+            }
+        }
+        r.replayed = end;
+        if r.replayed < live.len() {
             return;
         }
+        let Some(fresh) = r.fresh.take() else { return };
+        self.renewal = None;
+        self.screener.cond = fresh;
+        let rows = self.screener.cond.len().max(1);
         self.fill_after_reorder = self.screener.cond.factor_nnz() as f64 / rows as f64;
         self.counters.reorders += 1;
     }
@@ -567,7 +653,7 @@ impl OnlineEstimator {
         self.counters.ambiguous = self.ambiguous.len();
         self.counters.inconsistent = self.screener.inconsistent_count();
         self.counters.estimate_renewals = self.heads.renewals + self.positions.renewals;
-        self.counters.renewal_waits = self.heads.waits + self.positions.waits;
+        self.counters.renewal_waits = self.heads.waits + self.positions.waits + self.cond_waits;
     }
 
     /// Counters of the run so far.

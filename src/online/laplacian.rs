@@ -43,13 +43,16 @@ use crate::graph::UnionFind;
 
 /// Renew the order when R's nonzeros per row exceed this multiple of the last renewal's.
 const FILL_RATIO: f64 = 1.5;
+/// Renew when more than `1/APPENDED_FRACTION` of the nodes were appended since the last
+/// renewal.
+const APPENDED_FRACTION: usize = 8;
 /// Below this many variables the order is never renewed.
 const MIN_VARIABLES: usize = 256;
 /// Steps between starting a renewal and collecting it, at least.
-pub(crate) const MIN_DELAY: u64 = 64;
+pub(crate) const MIN_DELAY: u64 = 32;
 /// Steps between starting a renewal and collecting it, per nonzero of R (the builder's work
 /// grows with the factor).
-pub(crate) const DELAY_PER_ROW: f64 = 0.05;
+pub(crate) const DELAY_PER_ROW: f64 = 0.002;
 /// Events replayed into a renewed factor per step.
 pub(crate) const REPLAY_PER_STEP: usize = 32;
 
@@ -114,6 +117,8 @@ pub(crate) struct Laplacian<const K: usize> {
     /// The prior weight each node was (or would be) given as an anchor.
     first_weight: Vec<f64>,
     fill_after_renewal: f64,
+    /// Nodes at the last renewal (its snapshot).
+    nodes_at_renewal: usize,
     renewal: Option<Renewal<K>>,
     steps: u64,
     /// Renewals completed.
@@ -132,6 +137,7 @@ impl<const K: usize> Default for Laplacian<K> {
             prior: Vec::new(),
             first_weight: Vec::new(),
             fill_after_renewal: 0.0,
+            nodes_at_renewal: 0,
             renewal: None,
             steps: 0,
             renewals: 0,
@@ -264,8 +270,14 @@ impl<const K: usize> Laplacian<K> {
         if n < MIN_VARIABLES {
             return;
         }
+        // Nodes appended since the last renewal form a chain at the end of the order that
+        // every loop closure to an older node walks: renew when it is an eighth of the graph,
+        // or when the fill per row has grown by half.
         let per_row = self.factor.nnz() as f64 / n as f64;
-        if per_row <= FILL_RATIO * self.fill_after_renewal.max(1.0) {
+        let appended = n - self.nodes_at_renewal;
+        if per_row <= FILL_RATIO * self.fill_after_renewal.max(1.0)
+            && appended <= MIN_VARIABLES.max(n / APPENDED_FRACTION)
+        {
             return;
         }
         let rows = self.rows.clone();
@@ -280,6 +292,7 @@ impl<const K: usize> Laplacian<K> {
             // No thread: build here (a stall, but never a failure).
             Err(_) => (None, Some(build(&self.rows, &self.prior, n, Some(newest)))),
         };
+        self.nodes_at_renewal = n;
         self.renewal = Some(Renewal {
             handle,
             fresh,
