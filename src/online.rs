@@ -29,9 +29,10 @@
 use serde::Serialize;
 use smallvec::SmallVec;
 
+mod estimate;
 mod laplacian;
 
-use laplacian::Laplacian;
+use estimate::{Estimate, Op};
 
 use crate::batch::{self, BatchResult};
 use crate::cycles::{BasisKind, Cycle, CycleBasis, IncrementalBasis};
@@ -220,12 +221,8 @@ pub struct OnlineEstimator {
     /// Ambiguous cycles with their conditional moments at their last screening.
     ambiguous: BTreeMap<usize, Moments>,
     counters: Counters,
-    /// The factored orientation system (the estimate read after every step).
-    heads: Laplacian<1>,
-    /// The factored position system (x and y share one Laplacian; see [`Self::pose`]).
-    positions: Laplacian<2>,
-    /// Whether every edge so far has isotropic translation information.
-    isotropic: bool,
+    /// The factored orientations and positions (the estimate read after every step).
+    estimate: Estimate,
     /// Current best γ of every cycle ([`Self::gamma`]), kept up to date step by step.
     gamma: Vec<i64>,
     /// Current wraps of every edge (forward substitution of `gamma` over the cycles).
@@ -277,9 +274,7 @@ impl OnlineEstimator {
             screener: Screener::new(),
             ambiguous: BTreeMap::new(),
             counters: Counters::default(),
-            heads: Laplacian::default(),
-            positions: Laplacian::default(),
-            isotropic: true,
+            estimate: Estimate::default(),
             gamma: Vec::new(),
             wrap: Vec::new(),
             chord_cycle: Vec::new(),
@@ -363,8 +358,7 @@ impl OnlineEstimator {
         self.graph.add_edge(edge, NodePolicy::CreateUnknown)?;
         let (a, b) = self.graph.endpoints()[e];
         for _ in nodes_before..self.graph.node_count() {
-            self.heads.add_node();
-            self.positions.add_node();
+            self.estimate.push(Op::Node);
         }
         self.sigma2.push(edge.sigma2());
         self.delta.push(edge.delta());
@@ -375,9 +369,7 @@ impl OnlineEstimator {
         let Some(cycle) = self.basis.add_edge(a, b, edge.sigma2()) else {
             self.counters.tree_edges += 1;
             let new_node = self.graph.node_count() > nodes_before;
-            self.heads
-                .add_edge(a, b, edge.sigma2().recip(), [edge.delta()]);
-            self.add_position_row(a, b, &edge);
+            self.push_edge(e, a, b, &[]);
             self.after_step();
             return Ok(Step {
                 edge: e,
@@ -415,14 +407,7 @@ impl OnlineEstimator {
         // moved with the re-screened cycles.
         let changed =
             self.update_wraps(std::iter::once(t).chain(rescreened.iter().map(|r| r.cycle)));
-        self.heads
-            .add_edge(a, b, edge.sigma2().recip(), [self.wrapped(e)]);
-        for c in changed {
-            if c != e {
-                self.heads.set_y(c, [self.wrapped(c)]);
-            }
-        }
-        self.add_position_row(a, b, &edge);
+        self.push_edge(e, a, b, &changed);
         self.after_step();
         Ok(Step {
             edge: e,
@@ -442,26 +427,25 @@ impl OnlineEstimator {
         self.delta[e] - std::f64::consts::TAU * self.wrap[e] as f64
     }
 
-    /// The position row of a new edge: `p_b − p_a = R(θ_a) t_e`, with θ_a as estimated now
-    /// (after this step's orientation update) and the isotropic part of the translation
-    /// information as weight (exact when it is isotropic).
-    fn add_position_row(&mut self, a: usize, b: usize, edge: &Edge) {
-        let o = edge.information().translation_information();
-        self.isotropic &= o[0][1] == 0.0 && o[0][0] == o[1][1];
-        let theta_a = self.heads.value(a)[0];
-        self.positions.add_edge(
-            a,
-            b,
-            0.5 * (o[0][0] + o[1][1]),
-            rotate(theta_a, edge.measurement()),
-        );
+    /// Hand a step's edge to the estimate: its orientation row (with its wrap), the rows
+    /// whose wrap moved, its position row, the end of the step.
+    fn push_edge(&mut self, e: usize, a: usize, b: usize, changed: &[usize]) {
+        let (e32, a, b) = (e as u32, a as u32, b as u32);
+        let y = self.wrapped(e);
+        self.estimate.push(Op::Edge { e: e32, a, b, y });
+        for &c in changed {
+            if c != e {
+                let y = self.wrapped(c);
+                self.estimate.push(Op::Wrap { e: c as u32, y });
+            }
+        }
+        self.estimate.push(Op::Position { e: e32, a, b, y });
+        self.estimate.push(Op::Step);
     }
 
     /// End of a step: the factors' renewals advance, counters refresh.
     fn after_step(&mut self) {
         self.advance_reorder();
-        self.heads.after_step();
-        self.positions.after_step();
         self.refresh_counters();
     }
 
@@ -581,9 +565,8 @@ impl OnlineEstimator {
         }
         let determined = self.screener.cond.determined();
         let model = self.model.clone();
-        let delay = laplacian::MIN_DELAY.max(
-            (self.screener.cond.factor_nnz() as f64 * laplacian::DELAY_PER_ROW) as u64,
-        );
+        let delay = laplacian::MIN_DELAY
+            .max((self.screener.cond.factor_nnz() as f64 * laplacian::DELAY_PER_ROW) as u64);
         let job = move || Conditioner::rebuilt(&model, &determined, 0).ok();
         let (handle, fresh) = match std::thread::Builder::new()
             .name("so2lin-reorder".into())
@@ -652,8 +635,9 @@ impl OnlineEstimator {
         self.counters.determined = self.screener.cond.len();
         self.counters.ambiguous = self.ambiguous.len();
         self.counters.inconsistent = self.screener.inconsistent_count();
-        self.counters.estimate_renewals = self.heads.renewals + self.positions.renewals;
-        self.counters.renewal_waits = self.heads.waits + self.positions.waits + self.cond_waits;
+        let (renewals, waits) = self.estimate.renewals();
+        self.counters.estimate_renewals = renewals;
+        self.counters.renewal_waits = waits + self.cond_waits;
     }
 
     /// Counters of the run so far.
@@ -690,7 +674,8 @@ impl OnlineEstimator {
     /// Current orientations of all nodes (dense index order; anchors 0; unwrapped): one
     /// back-substitution in the maintained factor (no factorisation).
     pub fn orientations(&mut self) -> Result<&[f64], OnlineError> {
-        self.theta = self.heads.all(0);
+        self.theta = self.estimate.orientations(&self.graph);
+        self.refresh_counters();
         Ok(&self.theta)
     }
 
@@ -702,22 +687,9 @@ impl OnlineEstimator {
     /// back-substitution, no factorisation — and later [`Self::pose`] answers use them;
     /// otherwise the 2×2-block system is solved from scratch.
     pub fn poses(&mut self) -> Result<Vec<Pose2>, OnlineError> {
-        let theta = self.heads.all(0);
-        if !self.isotropic {
-            return Ok(crate::estimate::poses(&self.graph, &theta)?);
-        }
-        let y = self
-            .graph
-            .endpoints()
-            .iter()
-            .zip(self.graph.edges())
-            .map(|(&(a, _), e)| rotate(theta[a], e.measurement()))
-            .collect();
-        self.positions.reset_y(y);
-        let (x, y) = (self.positions.all(0), self.positions.all(1));
-        Ok((0..theta.len())
-            .map(|v| Pose2::new(x[v], y[v], theta[v]))
-            .collect())
+        let poses = self.estimate.poses(&self.graph)?;
+        self.refresh_counters();
+        Ok(poses)
     }
 
     /// Current orientation of a node (None for an unknown node): back-substitution along the
@@ -726,7 +698,7 @@ impl OnlineEstimator {
         let Some(v) = self.graph.node_index(node) else {
             return Ok(None);
         };
-        Ok(Some(self.heads.value(v)[0]))
+        Ok(Some(self.estimate.orientation(&self.graph, v)))
     }
 
     /// Current pose of a node (None for an unknown node), read from the maintained factors
@@ -740,8 +712,7 @@ impl OnlineEstimator {
         let Some(v) = self.graph.node_index(node) else {
             return Ok(None);
         };
-        let [x, y] = self.positions.value(v);
-        Ok(Some(Pose2::new(x, y, self.heads.value(v)[0])))
+        Ok(Some(self.estimate.pose(&self.graph, v)))
     }
 
     /// The newest node (the last one an edge created) and its pose ([`Self::pose`]).
@@ -764,7 +735,7 @@ impl OnlineEstimator {
         let Some(v) = self.graph.node_index(node) else {
             return Ok(None);
         };
-        Ok(Some(self.heads.variance(v)))
+        Ok(Some(self.estimate.orientation_variance(&self.graph, v)))
     }
 
     /// Marginal covariance of a node's pose `(x, y, θ)` relative to its component's anchor,
@@ -776,8 +747,8 @@ impl OnlineEstimator {
         let Some(v) = self.graph.node_index(node) else {
             return Ok(None);
         };
-        let p = self.positions.variance(v);
-        let t = self.heads.variance(v);
+        let p = self.estimate.position_variance(&self.graph, v);
+        let t = self.estimate.orientation_variance(&self.graph, v);
         Ok(Some([[p, 0.0, 0.0], [0.0, p, 0.0], [0.0, 0.0, t]]))
     }
 
@@ -833,12 +804,6 @@ impl OnlineEstimator {
 
 /// No cycle.
 const NONE: u32 = u32::MAX;
-
-/// `R(θ) t`: a relative translation in the world frame of a tail with heading θ.
-fn rotate(theta: f64, z: Pose2) -> [f64; 2] {
-    let (s, c) = theta.sin_cos();
-    [c * z.x - s * z.y, s * z.x + c * z.y]
-}
 
 fn edges_of(c: &Cycle) -> Vec<usize> {
     c.terms.iter().map(|t| t.edge as usize).collect()

@@ -148,6 +148,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         crate::screen::write_orientations(path, est.graph(), &theta)?;
     }
     let c = est.counters();
+    let steps_s = all.iter().sum::<u64>() as f64 / 1e9;
     let lat = [
         ("all", Latency::of(all)),
         ("tree", Latency::of(tree)),
@@ -175,6 +176,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "reorders": c.reorders,
             "latency_us": latency,
             "stream_seconds": stream_s,
+            "steps_seconds": steps_s,
             "finish_seconds": finish_s,
             "total_seconds": total,
             "peak_rss_bytes": rss,
@@ -212,7 +214,13 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     }
     println!(
         "online: {} determined, {} ambiguous, {} inconsistent, {} re-screens, {} factor reorders, {} estimate renewals ({} steps waited for one)",
-        c.determined, c.ambiguous, c.inconsistent, c.rescreens, c.reorders, c.estimate_renewals, c.renewal_waits
+        c.determined,
+        c.ambiguous,
+        c.inconsistent,
+        c.rescreens,
+        c.reorders,
+        c.estimate_renewals,
+        c.renewal_waits
     );
     println!(
         "finish: {} determined, {} ambiguous, {} hypotheses ({:?})",
