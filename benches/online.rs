@@ -79,15 +79,14 @@ fn bench_stream(c: &mut Criterion) {
                 let config = OnlineConfig::default();
                 let mut est = OnlineEstimator::new(config).expect("valid config");
                 let sink = Box::new(std::io::Cursor::new(Vec::new()));
-                let rec = Recorder::new(sink, &config, "bench", LogOptions::default())
+                let mut rec = Recorder::new(sink, &config, "bench", LogOptions::default())
                     .expect("in memory");
-                est.attach_recorder(rec);
-                for e in edges.iter() {
-                    est.add_edge(*e).expect("valid edge");
+                for (k, e) in edges.iter().enumerate() {
+                    rec.add_edge_at(&mut est, *e, k as u64 * 100_000_000)
+                        .expect("valid edge");
                     black_box(est.newest().expect("reads"));
                 }
-                est.detach_recorder()
-                    .map(|r| r.finish(&mut est).expect("in memory"))
+                rec.finish(&mut est).expect("in memory")
             })
         });
     }

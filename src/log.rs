@@ -7,14 +7,18 @@
 //! |---|---|
 //! | `/so2lin/edge` | every input edge exactly as given: ids, dx, dy, dθ, the information matrix |
 //! | `/so2lin/step` | every step's outcome (the online [`Step`](crate::online::Step)) and its latency in ns |
-//! | `/so2lin/estimate` | orientation snapshots every N steps and at the end |
+//! | `/so2lin/estimate` | orientation snapshots every N steps ([`LogOptions::snapshot_every`]) and at the end |
 //! | `/so2lin/log` | human-readable events as `foxglove.Log` |
 //! | `/graph` | `foxglove.SceneUpdate`: odometry and loop-closure edges as line lists, ambiguous loops highlighted (with each snapshot) |
 //! | `/poses` | `foxglove.PosesInFrame` in frame `map`: the current poses ([`OnlineEstimator::poses`]: orientations with least-squares positions), with each snapshot |
+//! | `/pose` | `foxglove.PoseInFrame` in frame `map`: the newest node's pose ([`OnlineEstimator::newest`]), every step |
 //!
 //! A metadata record `so2lin` holds the version, configuration, source and
-//! [`SCHEMA_VERSION`]. Log time is the step index (edges carry no timestamps), so a log plays
-//! back in order. A writer thread ([`Recorder`]) serialises and compresses off the estimator's
+//! [`SCHEMA_VERSION`]. The log time of a step's messages (`log_time`, `publish_time` and every
+//! Foxglove `timestamp`) is the step's time: the caller's ([`Recorder::add_edge_at`]) or the
+//! wall clock ([`Recorder::add_edge`]); `so2lin stream --log` and `demo` give step k the time
+//! start + k·0.1 s (`--step-time`), so a playback shows the map growing at ten steps a second.
+//! Messages carry their step index, which orders them on reading. A writer thread ([`Recorder`]) serialises and compresses off the estimator's
 //! thread; it closes and flushes a chunk after every loop closure and at least every
 //! [`LogOptions::flush_every`] steps, so a log cut at any byte (a robot losing power) still
 //! holds every step flushed before the cut: [`read_log`] reads linearly, stops at the first
@@ -39,7 +43,8 @@ pub const SCHEMA_VERSION: &str = "1";
 /// Recording options.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LogOptions {
-    /// Orientation snapshot every this many steps (0: only at the end).
+    /// Snapshot (`/so2lin/estimate`, `/graph`, `/poses`) every this many steps (0: only at
+    /// the end). Default 100.
     pub snapshot_every: usize,
     /// Flush (close the chunk) at least every this many steps.
     pub flush_every: usize,
@@ -51,7 +56,7 @@ pub struct LogOptions {
 impl Default for LogOptions {
     fn default() -> Self {
         Self {
-            snapshot_every: 5000,
+            snapshot_every: 100,
             flush_every: 64,
             flush_on_loop_closure: true,
         }
@@ -172,8 +177,14 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
             serde_json::from_slice(&m.data).map_err(|e| LogError::Format(e.to_string()))
         };
         match m.channel.topic.as_str() {
-            "/so2lin/edge" => edges.push((m.log_time, edge_from_json(&parse()?)?)),
-            "/so2lin/step" => steps.push((m.log_time, parse()?)),
+            "/so2lin/edge" => {
+                let v = parse()?;
+                edges.push((step_of(&v)?, edge_from_json(&v)?))
+            }
+            "/so2lin/step" => {
+                let v = parse()?;
+                steps.push((step_of(&v)?, v))
+            }
             _ => {}
         }
     }
@@ -195,6 +206,13 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
         steps: steps.into_iter().take(n).map(|x| x.1).collect(),
         truncated,
     })
+}
+
+/// The step index a message carries.
+fn step_of(v: &Value) -> Result<u64, LogError> {
+    v.get("step")
+        .and_then(Value::as_u64)
+        .ok_or_else(|| LogError::Format("a message without its step index".into()))
 }
 
 fn edge_from_json(v: &Value) -> Result<Edge, LogError> {

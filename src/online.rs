@@ -21,10 +21,21 @@
 //! pipeline's fixed-point first screening and second screening on the current state — the
 //! same [`Screener`] code.
 //!
-//! Orientations are cached: an odometry step to a new node extends the cached estimate in O(1)
-//! (`θ_new = θ_i + δ` is exact for a leaf), and a new cycle invalidates it; the next query
-//! solves the anchored Laplacian once ([`OrientationEstimator`]). Between determinations the
-//! ambiguous cycles' chords use their most likely integer (the rounded conditional mean).
+//! **The estimate** (modules `online/estimate.rs`, `online/laplacian.rs`): orientations and positions are kept as sparse
+//! square-root information factors grown by the same events as the basis — a new node (appended
+//! last, so the newest node is read in O(1)), a new edge (Givens rotations along the elimination
+//! tree path of its older end), a chord whose wrap moved after a re-screen (right-hand side
+//! only), two components joined (the later anchor's prior row down-dated). Between
+//! determinations the ambiguous cycles' chords use their most likely integer (the rounded
+//! conditional mean, clamped to the candidates); the wraps follow γ by forward substitution
+//! (`k_chord = γ_t − Σ_rest ±k_e`), re-done only for the cycles a step changed and the later
+//! cycles through a chord whose wrap moved. Reads never factor: [`OnlineEstimator::newest`]
+//! and [`OnlineEstimator::orientation`] back-substitute along one path,
+//! [`OnlineEstimator::orientations`] and [`OnlineEstimator::poses`] over the whole factor.
+//!
+//! **No stalls**: the factor of P_UU and the estimate's factors are renewed in a fill-reducing
+//! order on another thread, collected a fixed number of steps later and swapped in after a
+//! bounded catch-up (`online/laplacian.rs`); results do not depend on the threads' timing.
 
 use serde::Serialize;
 use smallvec::SmallVec;
@@ -239,8 +250,6 @@ pub struct OnlineEstimator {
     renewal: Option<CondRenewal>,
     /// Steps that waited for a renewal of L.
     cond_waits: usize,
-    /// MCAP recorder, when attached.
-    recorder: Option<Box<crate::log::Recorder>>,
 }
 
 /// A renewal of the P_UU factor built beside the live one ([`OnlineEstimator::maybe_reorder`]).
@@ -283,7 +292,6 @@ impl OnlineEstimator {
             fill_after_reorder: f64::INFINITY,
             renewal: None,
             cond_waits: 0,
-            recorder: None,
         })
     }
 
@@ -315,37 +323,11 @@ impl OnlineEstimator {
         self.add_edge(Edge::new(from, to, z, info)?)
     }
 
-    /// Record every following step to an MCAP log ([`crate::log`]). Without a recorder
-    /// `add_edge` does no recording work at all.
-    pub fn attach_recorder(&mut self, recorder: crate::log::Recorder) {
-        self.recorder = Some(Box::new(recorder));
-    }
-
-    /// The attached recorder (to [`sync`](crate::log::Recorder::sync) it or read its error).
-    pub fn recorder_mut(&mut self) -> Option<&mut crate::log::Recorder> {
-        self.recorder.as_deref_mut()
-    }
-
-    /// Take the recorder back (to finish the log).
-    pub fn detach_recorder(&mut self) -> Option<crate::log::Recorder> {
-        self.recorder.take().map(|r| *r)
-    }
-
     /// Add an edge (validated by construction). Edges to unseen nodes create them; an edge
-    /// between two components joins them. With a recorder attached, the edge, the step and
-    /// its latency are logged.
+    /// between two components joins them. A refused edge leaves the estimator unchanged.
+    /// Recording is an observer of steps: see [`crate::log::Recorder::add_edge`].
     pub fn add_edge(&mut self, edge: Edge) -> Result<Step, OnlineError> {
-        let Some(mut recorder) = self.recorder.take() else {
-            return self.add_edge_inner(edge);
-        };
-        let start = std::time::Instant::now();
-        let step = self.add_edge_inner(edge);
-        let ns = start.elapsed().as_nanos() as u64;
-        if let Ok(s) = &step {
-            recorder.record(&edge, s, ns, self);
-        }
-        self.recorder = Some(recorder);
-        step
+        self.add_edge_inner(edge)
     }
 
     fn add_edge_inner(&mut self, edge: Edge) -> Result<Step, OnlineError> {

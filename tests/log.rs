@@ -44,22 +44,21 @@ fn record(edges: &[Edge], options: LogOptions) -> (Vec<u8>, Vec<Option<usize>>) 
     let sink = Shared::default();
     let config = OnlineConfig::default();
     let mut est = OnlineEstimator::new(config).unwrap();
-    est.attach_recorder(Recorder::new(Box::new(sink.clone()), &config, "test", options).unwrap());
+    let mut rec = Recorder::new(Box::new(sink.clone()), &config, "test", options).unwrap();
     let mut lengths = Vec::new();
     let mut since = 0;
     for e in edges {
-        let step = est.add_edge(*e).unwrap();
+        let step = rec.add_edge(&mut est, *e).unwrap();
         since += 1;
         let flushed = (options.flush_on_loop_closure && matches!(step.kind, StepKind::Cycle(_)))
             || since >= options.flush_every;
         if flushed {
             since = 0;
             // The writer thread flushes on its own; wait for it to reach this step.
-            est.recorder_mut().unwrap().sync().unwrap();
+            rec.sync().unwrap();
         }
         lengths.push(flushed.then(|| sink.len()));
     }
-    let rec = est.detach_recorder().unwrap();
     assert_eq!(rec.finish(&mut est).unwrap(), edges.len() as u64);
     (sink.bytes(), lengths)
 }
@@ -201,18 +200,16 @@ fn a_failing_sink_is_reported_and_never_fails_a_step() {
         file: Cursor::new(Vec::new()),
         limit: 20_000,
     };
-    let rec = Recorder::new(Box::new(sink), &config, "test", LogOptions::default()).unwrap();
-    logged.attach_recorder(rec);
+    let mut rec = Recorder::new(Box::new(sink), &config, "test", LogOptions::default()).unwrap();
     for e in w.graph.edges() {
         let a = plain.add_edge(*e).unwrap();
-        let b = logged.add_edge(*e).unwrap();
+        let b = rec.add_edge(&mut logged, *e).unwrap();
         assert_eq!(a, b);
     }
-    let sync = logged.recorder_mut().unwrap().sync();
+    let sync = rec.sync();
     assert!(sync.is_err());
-    let err = logged.recorder_mut().unwrap().error().unwrap();
+    let err = rec.error().unwrap();
     assert!(err.contains("disk full"), "{err}");
-    let rec = logged.detach_recorder().unwrap();
     assert!(rec.finish(&mut logged).is_err());
     assert_eq!(
         plain.orientations().unwrap(),
@@ -226,20 +223,19 @@ fn a_recorder_dropped_without_finish_leaves_a_complete_file() {
     let sink = Shared::default();
     let config = OnlineConfig::default();
     let mut est = OnlineEstimator::new(config).unwrap();
-    est.attach_recorder(
-        Recorder::new(Box::new(sink.clone()), &config, "t", LogOptions::default()).unwrap(),
-    );
+    let mut rec =
+        Recorder::new(Box::new(sink.clone()), &config, "t", LogOptions::default()).unwrap();
     for e in w.graph.edges() {
-        est.add_edge(*e).unwrap();
+        rec.add_edge(&mut est, *e).unwrap();
     }
-    drop(est);
+    drop(rec);
     let log = read_log(&sink.bytes()).unwrap();
     assert!(log.truncated.is_none(), "{:?}", log.truncated);
     assert_eq!(log.steps.len(), w.graph.edge_count());
 }
 
-/// `/poses` holds `OnlineEstimator::poses()` of the step it was taken at: periodic snapshots
-/// (solved by the writer from the wraps) and the final one (solved by the caller).
+/// `/poses` holds `OnlineEstimator::poses()` of the step it was taken at (periodic snapshots
+/// and the final one, all from the maintained factors).
 #[test]
 fn pose_snapshots_are_the_estimators_poses() {
     let mut c = SimConfig::new(500, 12);
@@ -252,15 +248,14 @@ fn pose_snapshots_are_the_estimators_poses() {
         ..LogOptions::default()
     };
     let mut est = OnlineEstimator::new(config).unwrap();
-    est.attach_recorder(Recorder::new(Box::new(sink.clone()), &config, "t", options).unwrap());
+    let mut rec = Recorder::new(Box::new(sink.clone()), &config, "t", options).unwrap();
     let mut expected = Vec::new();
     for (k, e) in w.graph.edges().iter().enumerate() {
-        est.add_edge(*e).unwrap();
+        rec.add_edge(&mut est, *e).unwrap();
         if (k + 1) % 150 == 0 {
             expected.push(est.poses().unwrap());
         }
     }
-    let rec = est.detach_recorder().unwrap();
     expected.push(est.poses().unwrap());
     rec.finish(&mut est).unwrap();
     let bytes = sink.bytes();
@@ -285,4 +280,52 @@ fn pose_snapshots_are_the_estimators_poses() {
             assert!((qz - (0.5 * p.theta).sin()).abs() <= 1e-6);
         }
     }
+}
+
+/// Every step's messages carry the caller's time (log time, publish time and Foxglove
+/// timestamps agree), the newest pose goes out every step on `/pose`, snapshots come every
+/// `snapshot_every` steps, and the log still replays exactly.
+#[test]
+fn caller_times_and_the_newest_pose_are_in_every_step() {
+    let w = simulate(&SimConfig::new(300, 3)).unwrap();
+    let sink = Shared::default();
+    let config = OnlineConfig::default();
+    let options = LogOptions::default();
+    let mut est = OnlineEstimator::new(config).unwrap();
+    let mut rec = Recorder::new(Box::new(sink.clone()), &config, "t", options).unwrap();
+    let t0 = 1_700_000_000_000_000_000u64;
+    let mut newest = Vec::new();
+    for (k, e) in w.graph.edges().iter().enumerate() {
+        rec.add_edge_at(&mut est, *e, t0 + k as u64 * 100_000_000).unwrap();
+        newest.push(est.newest().unwrap().unwrap().1);
+    }
+    rec.finish(&mut est).unwrap();
+    let bytes = sink.bytes();
+    let (mut poses, mut snapshots) = (0usize, 0usize);
+    for m in mcap::MessageStream::new(&bytes).unwrap() {
+        let m = m.unwrap();
+        assert_eq!(m.log_time, m.publish_time);
+        assert!(m.log_time >= t0 && m.log_time < t0 + 1000 * 100_000_000);
+        let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+        let stamp = v.get("timestamp").or_else(|| v["entities"][0].get("timestamp"));
+        if let Some(s) = stamp {
+            let ns = s["sec"].as_u64().unwrap() * 1_000_000_000 + s["nsec"].as_u64().unwrap();
+            assert_eq!(ns, m.log_time, "{}", m.channel.topic);
+        }
+        if m.channel.topic == "/pose" {
+            let k = ((m.log_time - t0) / 100_000_000) as usize;
+            let p = &v["pose"]["position"];
+            // Display channels carry f32 coordinates.
+            assert!((p["x"].as_f64().unwrap() - newest[k].x).abs() < 1e-3);
+            poses += 1;
+        }
+        if m.channel.topic == "/poses" {
+            snapshots += 1;
+        }
+    }
+    assert_eq!(poses, w.graph.edge_count());
+    assert_eq!(snapshots, w.graph.edge_count() / options.snapshot_every + 1);
+    let log = read_log(&bytes).unwrap();
+    let replay = so2lin::log::replay(&log, true).unwrap();
+    assert_eq!(replay.steps, w.graph.edge_count());
 }

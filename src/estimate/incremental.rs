@@ -239,8 +239,8 @@ impl<const K: usize> SqrtInfo<K> {
             let (k, ak) = w[head];
             let k = k as usize;
             let y = ak / self.diag[k];
-            for q in 0..K {
-                self.d[k][q] += y * delta[q];
+            for (dq, &sq) in self.d[k].iter_mut().zip(&delta) {
+                *dq += y * sq;
             }
             // a_j -= R_kj y for j in row k, merged with the rest of w.
             next.clear();
@@ -471,7 +471,27 @@ pub(crate) fn fill_reducing_order(
 mod tests {
     use super::*;
 
-    /// Dense normal equations and their solution, for checking.
+    /// `H x = g` by Gaussian elimination (H SPD: no pivoting), for checking.
+    fn dense_solve(mut h: Vec<Vec<f64>>, mut x: Vec<f64>) -> Vec<f64> {
+        let n = x.len();
+        for k in 0..n {
+            let pivot = h[k].clone();
+            for i in k + 1..n {
+                let f = h[i][k] / pivot[k];
+                for (hij, pkj) in h[i].iter_mut().zip(&pivot).skip(k) {
+                    *hij -= f * pkj;
+                }
+                x[i] -= f * x[k];
+            }
+        }
+        for k in (0..n).rev() {
+            let s: f64 = (k + 1..n).map(|j| h[k][j] * x[j]).sum();
+            x[k] = (x[k] - s) / h[k][k];
+        }
+        x
+    }
+
+    /// Dense normal equations: the diagonal of their inverse and their solution.
     fn dense(n: usize, rows: &[(Vec<(usize, f64)>, f64)]) -> (Vec<Vec<f64>>, Vec<f64>) {
         let mut h = vec![vec![0.0; n]; n];
         let mut g = vec![0.0; n];
@@ -483,44 +503,14 @@ mod tests {
                 }
             }
         }
-        // Gaussian elimination (SPD, no pivoting needed).
-        let mut m = h.clone();
-        let mut x = g.clone();
-        for k in 0..n {
-            for i in k + 1..n {
-                let f = m[i][k] / m[k][k];
-                for j in k..n {
-                    m[i][j] -= f * m[k][j];
-                }
-                x[i] -= f * x[k];
-            }
-        }
-        for k in (0..n).rev() {
-            let s: f64 = (k + 1..n).map(|j| m[k][j] * x[j]).sum();
-            x[k] = (x[k] - s) / m[k][k];
-        }
         let inv_diag = (0..n)
             .map(|v| {
                 let mut e = vec![0.0; n];
                 e[v] = 1.0;
-                let mut m = h.clone();
-                for k in 0..n {
-                    for i in k + 1..n {
-                        let f = m[i][k] / m[k][k];
-                        for j in k..n {
-                            m[i][j] -= f * m[k][j];
-                        }
-                        e[i] -= f * e[k];
-                    }
-                }
-                for k in (0..n).rev() {
-                    let s: f64 = (k + 1..n).map(|j| m[k][j] * e[j]).sum();
-                    e[k] = (e[k] - s) / m[k][k];
-                }
-                e[v]
+                dense_solve(h.clone(), e)[v]
             })
             .collect();
-        (vec![inv_diag], x)
+        (vec![inv_diag], dense_solve(h, g))
     }
 
     fn lcg(state: &mut u64) -> f64 {

@@ -16,6 +16,8 @@ pub(super) const LOG_SCHEMA: &str = include_str!("foxglove_Log.json");
 pub(super) const SCENE_SCHEMA: &str = include_str!("foxglove_SceneUpdate.json");
 /// The official `foxglove.PosesInFrame` JSON Schema (foxglove/schemas).
 pub(super) const POSES_SCHEMA: &str = include_str!("foxglove_PosesInFrame.json");
+/// `foxglove.PoseInFrame` (the official JSON Schema).
+pub(super) const POSE_SCHEMA: &str = include_str!("foxglove_PoseInFrame.json");
 
 /// `foxglove.Time` (log time is the step index: `sec` = step).
 #[derive(Clone, Copy, Serialize)]
@@ -25,8 +27,12 @@ pub(super) struct Stamp {
 }
 
 impl Stamp {
-    pub(super) fn at(step: u64) -> Self {
-        Self { sec: step, nsec: 0 }
+    /// A time in nanoseconds since the Unix epoch (the log time of the message).
+    pub(super) fn at(ns: u64) -> Self {
+        Self {
+            sec: ns / 1_000_000_000,
+            nsec: (ns % 1_000_000_000) as u32,
+        }
     }
 }
 
@@ -166,7 +172,7 @@ pub(super) enum Style {
 impl<'a> SceneUpdate<'a> {
     /// The graph in frame `map`: `segments[s]` holds the endpoint pairs drawn in style `s`.
     pub(super) fn graph(
-        step: u64,
+        time_ns: u64,
         segments: &'a [Vec<(usize, usize)>; 3],
         pos: &'a [(f64, f64)],
     ) -> Self {
@@ -199,7 +205,7 @@ impl<'a> SceneUpdate<'a> {
         Self {
             deletions: NONE,
             entities: [SceneEntity {
-                timestamp: Stamp::at(step),
+                timestamp: Stamp::at(time_ns),
                 frame_id: "map",
                 id: "so2lin-graph",
                 lifetime: Stamp::at(0),
@@ -229,11 +235,33 @@ pub(super) struct PosesInFrame<'a> {
 
 impl<'a> PosesInFrame<'a> {
     /// Positions with headings.
-    pub(super) fn new(step: u64, pos: &'a [(f64, f64)], theta: &'a [f64]) -> Self {
+    pub(super) fn new(time_ns: u64, pos: &'a [(f64, f64)], theta: &'a [f64]) -> Self {
         Self {
-            timestamp: Stamp::at(step),
+            timestamp: Stamp::at(time_ns),
             frame_id: "map",
             poses: (pos, theta),
+        }
+    }
+}
+
+/// `foxglove.PoseInFrame` in frame `map`: one pose (the newest node's, every step).
+#[derive(Serialize)]
+pub(super) struct PoseInFrame<'a> {
+    timestamp: Stamp,
+    frame_id: &'a str,
+    pose: Pose,
+}
+
+impl PoseInFrame<'_> {
+    /// A planar pose at a time.
+    pub(super) fn new(time_ns: u64, x: f64, y: f64, theta: f64) -> Self {
+        Self {
+            timestamp: Stamp::at(time_ns),
+            frame_id: "map",
+            pose: Pose {
+                position: Point::planar((x, y)),
+                orientation: Quaternion::yaw(theta),
+            },
         }
     }
 }
@@ -256,13 +284,15 @@ mod tests {
     fn scene_lines_hold_both_endpoints_of_every_segment() {
         let pos = [(0.0, 0.0), (1.0, 0.0), (1.0, 2.0)];
         let segs = [vec![(0, 1), (1, 2)], vec![(2, 0)], vec![]];
-        let v = serde_json::to_value(SceneUpdate::graph(7, &segs, &pos)).expect("serialisable");
+        let v = serde_json::to_value(SceneUpdate::graph(7_250_000_000, &segs, &pos))
+            .expect("serialisable");
         let lines = &v["entities"][0]["lines"];
         assert_eq!(lines[0]["points"].as_array().map(Vec::len), Some(4));
         assert_eq!(lines[1]["points"][0]["x"], 1.0);
         assert_eq!(lines[1]["points"][0]["y"], 2.0);
         assert_eq!(lines[2]["points"].as_array().map(Vec::len), Some(0));
         assert_eq!(v["entities"][0]["timestamp"]["sec"], 7);
+        assert_eq!(v["entities"][0]["timestamp"]["nsec"], 250_000_000);
         assert_eq!(v["entities"][0]["arrows"], serde_json::json!([]));
     }
 

@@ -12,10 +12,17 @@
 //! at any byte holds every step whose chunk was closed before the cut; `sync` waits until
 //! everything recorded so far is.
 //!
-//! **Snapshots** (`/so2lin/estimate`, `/graph`, `/poses`) are the poses of
-//! [`OnlineEstimator::poses`]. Periodic ones are solved by the writer on its replica of the
-//! graph from the estimator's wraps (same code), so the loop only pays for the wraps; the
-//! final one is solved and serialised on the caller's thread while the writer drains.
+//! **Recording observes steps**: the estimator knows nothing of MCAP. [`Recorder::add_edge`]
+//! (or [`Recorder::add_edge_at`] with the caller's timestamp) adds the edge to the estimator,
+//! times the step, reads the newest pose ([`OnlineEstimator::newest`], `/pose` every step) and
+//! hands everything to the writer; `log_time`, `publish_time` and every Foxglove `timestamp`
+//! of the step's messages are the step's time.
+//!
+//! **Snapshots** (`/so2lin/estimate`, `/graph`, `/poses`, every
+//! [`LogOptions::snapshot_every`] steps and at the end) are the exact poses of
+//! [`OnlineEstimator::poses`], read from the maintained factors (one forward and one
+//! back-substitution, no factorisation); the writer serialises them. A snapshot that cannot be
+//! computed is reported on `/so2lin/log` and never costs a step.
 //!
 //! The messages and their order do not depend on the writer's timing; only the chunk
 //! boundaries can, so replays are identical while the files' bytes may differ (the recorded
@@ -29,14 +36,13 @@ use std::thread::JoinHandle;
 
 use serde_json::Value;
 
-use super::foxglove::{self, LogLine, PosesInFrame, SceneUpdate, Stamp, Style};
+use super::foxglove::{self, LogLine, PoseInFrame, PosesInFrame, SceneUpdate, Stamp, Style};
 use super::queue::Queue;
 use super::{
     EDGE_SCHEMA, ESTIMATE_SCHEMA, LogError, LogOptions, SCHEMA_VERSION, STEP_SCHEMA, Sink,
 };
-use crate::estimate::OrientationEstimator;
 use crate::graph::{Edge, NodePolicy, Pose2, PoseGraph};
-use crate::online::{Decision, OnlineConfig, OnlineEstimator, Step, StepKind};
+use crate::online::{Decision, OnlineConfig, OnlineError, OnlineEstimator, Step, StepKind};
 
 /// Writes an online run to MCAP (flush policy and threads: [`crate::log`]).
 pub struct Recorder {
@@ -55,57 +61,45 @@ enum Record {
         edge: Edge,
         step: Step,
         latency_ns: u64,
+        time_ns: u64,
+        newest: Option<Pose2>,
     },
     Snapshot(Snapshot),
+    /// A snapshot that could not be computed: said on `/so2lin/log`.
+    Failed(String),
     Sync(SyncSender<()>),
-    Finish(Snapshot),
+    Finish(Option<Snapshot>),
 }
 
-/// What the writer needs for a snapshot (`/so2lin/estimate`, `/graph`, `/poses`): the
-/// estimate, and the chords of the ambiguous cycles. Periodic snapshots, taken inside the
-/// SLAM loop, carry only the estimator's current wraps: the writer solves for θ and the
-/// positions on its replica of the graph (built from the recorded edges) with the same code as
-/// [`OnlineEstimator::poses`], so the loop pays for the wraps alone. The final snapshot, taken
-/// after the loop, carries the poses themselves, computed by `poses()` on the estimator's
-/// thread while the writer drains its queue.
+/// A snapshot (`/so2lin/estimate`, `/graph`, `/poses`): the exact poses, and the chords of the
+/// ambiguous cycles; the writer serialises it with its replica of the graph.
 struct Snapshot {
-    estimate: Estimate,
+    poses: Vec<Pose2>,
     flagged: Vec<usize>,
 }
 
-enum Estimate {
-    /// The estimator's wraps: the writer solves and encodes.
-    Wraps(Vec<i64>),
-    /// The messages, solved and encoded on the estimator's thread.
-    Encoded(Encoded),
-}
-
-/// The serialised `/so2lin/estimate`, `/graph` and `/poses` messages of a snapshot.
-struct Encoded([Vec<u8>; 3]);
-
 impl Snapshot {
-    /// A periodic snapshot (`last == false`) or the final one, for log time `step`.
-    fn of(est: &mut OnlineEstimator, last: bool, step: u64) -> Result<Self, LogError> {
-        let format = |e: crate::online::OnlineError| LogError::Format(e.to_string());
+    fn of(est: &mut OnlineEstimator) -> Result<Self, OnlineError> {
         let mut flagged: Vec<usize> = est
             .ambiguous()
             .iter()
             .map(|&c| est.cycles()[c].chord() as usize)
             .collect();
         flagged.sort_unstable();
-        let estimate = if last {
-            let poses = est.poses().map_err(format)?;
-            Estimate::Encoded(encode(step, est.graph(), &poses, &flagged)?)
-        } else {
-            Estimate::Wraps(est.wraps().map_err(format)?)
-        };
-        Ok(Self { estimate, flagged })
+        Ok(Self {
+            poses: est.poses()?,
+            flagged,
+        })
     }
 }
+
+/// The serialised `/so2lin/estimate`, `/graph` and `/poses` messages of a snapshot.
+struct Encoded([Vec<u8>; 3]);
 
 /// Serialise a snapshot: the orientations, the graph's edges by style, the poses.
 fn encode(
     step: u64,
+    time_ns: u64,
     graph: &PoseGraph,
     poses: &[Pose2],
     flagged: &[usize],
@@ -139,8 +133,8 @@ fn encode(
             nodes: &nodes,
             theta: &theta,
         })?,
-        json(&SceneUpdate::graph(step, &segments, &pos))?,
-        json(&PosesInFrame::new(step, &pos, &theta))?,
+        json(&SceneUpdate::graph(time_ns, &segments, &pos))?,
+        json(&PosesInFrame::new(time_ns, &pos, &theta))?,
     ]))
 }
 
@@ -181,7 +175,7 @@ impl Recorder {
             .profile("")
             .library(format!("so2lin {}", env!("CARGO_PKG_VERSION")));
         let mut mcap = opts.create(sink)?;
-        let mut channels = [0u16; 6];
+        let mut channels = [0u16; 7];
         let defs = [
             ("so2lin.Edge", EDGE_SCHEMA, "/so2lin/edge"),
             ("so2lin.Step", STEP_SCHEMA, "/so2lin/step"),
@@ -189,6 +183,7 @@ impl Recorder {
             ("foxglove.Log", foxglove::LOG_SCHEMA, "/so2lin/log"),
             ("foxglove.SceneUpdate", foxglove::SCENE_SCHEMA, "/graph"),
             ("foxglove.PosesInFrame", foxglove::POSES_SCHEMA, "/poses"),
+            ("foxglove.PoseInFrame", foxglove::POSE_SCHEMA, "/pose"),
         ];
         for (k, (name, schema, topic)) in defs.into_iter().enumerate() {
             let id = mcap.add_schema(name, "jsonschema", schema.as_bytes())?;
@@ -221,6 +216,7 @@ impl Recorder {
             options,
             steps: 0,
             since_flush: 0,
+            time_ns: 0,
             pending: false,
             buf: Vec::with_capacity(1024),
         };
@@ -260,33 +256,62 @@ impl Recorder {
         }
     }
 
-    /// Record one step: its input edge, its outcome with the latency, and a snapshot when due.
-    /// Errors are kept (see [`error`](Self::error)); recording never fails a step.
-    pub fn record(&mut self, edge: &Edge, step: &Step, latency_ns: u64, est: &mut OnlineEstimator) {
+    /// Add an edge to the estimator and record the step, at the wall-clock time (ns since the
+    /// Unix epoch). A refused edge is not recorded and leaves the estimator unchanged.
+    pub fn add_edge(&mut self, est: &mut OnlineEstimator, edge: Edge) -> Result<Step, OnlineError> {
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64);
+        self.add_edge_at(est, edge, now)
+    }
+
+    /// [`add_edge`](Self::add_edge) at the caller's time (ns since the Unix epoch, e.g. the
+    /// sensor time of the measurement): the log time of the step's messages. Times are
+    /// recorded data, so a replay stays exact whatever they are.
+    pub fn add_edge_at(
+        &mut self,
+        est: &mut OnlineEstimator,
+        edge: Edge,
+        time_ns: u64,
+    ) -> Result<Step, OnlineError> {
+        let start = std::time::Instant::now();
+        let step = est.add_edge(edge)?;
+        let latency_ns = start.elapsed().as_nanos() as u64;
+        self.record(&edge, &step, latency_ns, time_ns, est);
+        Ok(step)
+    }
+
+    /// Record one step made by the caller: its input edge, its outcome with the latency, the
+    /// newest pose, and a snapshot when due. Errors are kept (see [`error`](Self::error));
+    /// recording never fails a step.
+    pub fn record(
+        &mut self,
+        edge: &Edge,
+        step: &Step,
+        latency_ns: u64,
+        time_ns: u64,
+        est: &mut OnlineEstimator,
+    ) {
         if !self.live {
             return;
         }
+        let newest = est.newest().ok().flatten().map(|(_, p)| p);
         let record = Record::Step {
             edge: *edge,
             step: step.clone(),
             latency_ns,
+            time_ns,
+            newest,
         };
         self.send(record, false);
         self.steps += 1;
         let every = self.options.snapshot_every as u64;
         if every > 0 && self.steps.is_multiple_of(every) {
-            match Snapshot::of(est, false, self.steps) {
+            match Snapshot::of(est) {
                 Ok(s) => self.send(Record::Snapshot(s), false),
-                Err(e) => self.fail(e),
+                Err(e) => self.send(Record::Failed(e.to_string()), false),
             }
         }
-    }
-
-    fn fail(&mut self, e: LogError) {
-        if let Ok(mut f) = self.failure.lock() {
-            f.get_or_insert(describe(&e));
-        }
-        self.live = false;
     }
 
     /// Block until every step recorded so far is written and its chunk flushed to the sink.
@@ -309,9 +334,12 @@ impl Recorder {
     /// Write the final snapshot and the summary, close the file, and return the number of
     /// steps recorded.
     pub fn finish(mut self, est: &mut OnlineEstimator) -> Result<u64, LogError> {
-        match Snapshot::of(est, true, self.steps) {
-            Ok(s) => self.send(Record::Finish(s), true),
-            Err(e) => self.fail(e),
+        match Snapshot::of(est) {
+            Ok(s) => self.send(Record::Finish(Some(s)), true),
+            Err(e) => {
+                self.send(Record::Failed(e.to_string()), false);
+                self.send(Record::Finish(None), true);
+            }
         }
         self.queue.close();
         let result = match self.worker.take().map(JoinHandle::join) {
@@ -357,16 +385,19 @@ const ESTIMATE: usize = 2;
 const LOG: usize = 3;
 const GRAPH: usize = 4;
 const POSES: usize = 5;
+const POSE: usize = 6;
 
 /// The writer thread's state.
 struct Writer {
     mcap: mcap::Writer<Box<dyn Sink>>,
     /// The recorded edges, as the estimator holds them (same order, same dense indices).
     graph: PoseGraph,
-    channels: [u16; 6],
+    channels: [u16; 7],
     options: LogOptions,
     steps: u64,
     since_flush: usize,
+    /// Time of the current step (ns since the Unix epoch).
+    time_ns: u64,
     /// A loop closure is waiting for its flush.
     pending: bool,
     /// Reused serialisation buffer.
@@ -386,15 +417,20 @@ impl Writer {
                         edge,
                         step,
                         latency_ns,
-                    } => self.step(&edge, &step, latency_ns)?,
+                        time_ns,
+                        newest,
+                    } => self.step(&edge, &step, latency_ns, time_ns, newest)?,
                     Record::Snapshot(s) => self.snapshot(s)?,
+                    Record::Failed(e) => self.log_line(4, &format!("snapshot not written: {e}"))?,
                     Record::Sync(reply) => {
                         self.flush()?;
                         // The caller may have stopped waiting; nothing to do then.
                         let _ = reply.send(());
                     }
                     Record::Finish(s) => {
-                        self.snapshot(s)?;
+                        if let Some(s) = s {
+                            self.snapshot(s)?;
+                        }
                         self.mcap.finish()?;
                         return Ok(self.steps);
                     }
@@ -437,8 +473,8 @@ impl Writer {
         let header = mcap::records::MessageHeader {
             channel_id: self.channels[channel],
             sequence: self.steps as u32,
-            log_time: self.steps,
-            publish_time: self.steps,
+            log_time: self.time_ns,
+            publish_time: self.time_ns,
         };
         self.mcap.write_to_known_channel(&header, data)?;
         Ok(())
@@ -446,7 +482,7 @@ impl Writer {
 
     fn log_line(&mut self, level: u8, message: &str) -> Result<(), LogError> {
         let line = LogLine {
-            timestamp: Stamp::at(self.steps),
+            timestamp: Stamp::at(self.time_ns),
             level,
             message,
             name: "so2lin",
@@ -456,11 +492,22 @@ impl Writer {
         self.put(LOG, &line)
     }
 
-    fn step(&mut self, edge: &Edge, step: &Step, latency_ns: u64) -> Result<(), LogError> {
+    fn step(
+        &mut self,
+        edge: &Edge,
+        step: &Step,
+        latency_ns: u64,
+        time_ns: u64,
+        newest: Option<Pose2>,
+    ) -> Result<(), LogError> {
+        self.time_ns = time_ns;
         self.graph
             .add_edge(*edge, NodePolicy::CreateUnknown)
             .map_err(|e| LogError::Format(e.to_string()))?;
         self.put(EDGE, &EdgeMsg::new(self.steps, edge))?;
+        if let Some(p) = newest {
+            self.put(POSE, &PoseInFrame::new(time_ns, p.x, p.y, p.theta))?;
+        }
         let msg = StepMsg {
             step: self.steps,
             latency_ns,
@@ -505,17 +552,14 @@ impl Writer {
     }
 
     fn snapshot(&mut self, s: Snapshot) -> Result<(), LogError> {
-        let encoded = match s.estimate {
-            Estimate::Encoded(e) => e,
-            Estimate::Wraps(k) => {
-                let format = |e: crate::estimate::EstimateError| LogError::Format(e.to_string());
-                let solver = OrientationEstimator::new(&self.graph).map_err(format)?;
-                let theta = solver.orientations(&k);
-                let poses = solver.poses(&self.graph, &theta).map_err(format)?;
-                encode(self.steps, &self.graph, &poses, &s.flagged)?
-            }
-        };
-        let [estimate, graph, poses] = encoded.0;
+        if s.poses.len() != self.graph.node_count() {
+            return self.log_line(
+                4,
+                "snapshot not written: it does not match the recorded graph",
+            );
+        }
+        let [estimate, graph, poses] =
+            encode(self.steps, self.time_ns, &self.graph, &s.poses, &s.flagged)?.0;
         self.write(ESTIMATE, &estimate)?;
         self.write(GRAPH, &graph)?;
         self.write(POSES, &poses)

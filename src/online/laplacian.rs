@@ -26,14 +26,17 @@
 //!   only its right-hand side moves.
 //!
 //! **Renewing the order without a stall.** New nodes are appended at the end, so revisits of
-//! old places make R fill in. When R's nonzeros per row have grown by half since the last
-//! renewal, a new factor is built **beside** the live one on another thread, in approximate
-//! minimum-degree order with the newest node last (the graph as it was at that step). It is
-//! collected a fixed number of steps later ([`DELAY_PER_ROW`] steps per row of R, at least
+//! old places make R fill in, and the nodes appended since the last renewal form a chain that
+//! every loop closure to an older node walks. When R's nonzeros per row have grown by half, or
+//! an eighth of the nodes were appended, since the last renewal, a new factor is built
+//! **beside** the live one on another thread, in approximate minimum-degree order with the
+//! newest node last (the graph as it was at that step). It is collected a fixed number of
+//! steps later ([`DELAY_PER_ROW`] steps per nonzero of R, at least
 //! [`MIN_DELAY`]: a step count, so the run stays deterministic whatever the threads' timing;
 //! the step waits only if the builder is still busy then). The events since the snapshot are
 //! then replayed into it, at most [`REPLAY_PER_STEP`] per step, and once it has caught up, d is
-//! recomputed from the current wraps (one forward solve) and the new factor replaces the old.
+//! recomputed from the current measurements (one forward solve) and the new factor replaces
+//! the old.
 //! Every answer in between comes from the live factor: exact at every step.
 
 use std::thread::JoinHandle;
@@ -240,9 +243,9 @@ impl<const K: usize> Laplacian<K> {
                 x[v] -= x[a];
             }
         }
-        for v in 0..x.len() {
-            if self.prior[v] != 0.0 {
-                x[v] = 0.0;
+        for (xv, &p) in x.iter_mut().zip(&self.prior) {
+            if p != 0.0 {
+                *xv = 0.0;
             }
         }
         x

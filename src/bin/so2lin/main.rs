@@ -241,6 +241,13 @@ enum Command {
         /// Record every step to this MCAP log.
         #[arg(long)]
         log: Option<PathBuf>,
+        /// With --log: full snapshots (/graph, /poses, /so2lin/estimate) every N steps.
+        #[arg(long, value_name = "N", default_value_t = 100)]
+        snapshot_every: usize,
+        /// With --log: log time between steps in seconds (file edges carry no timestamps; the
+        /// first step is at the wall-clock time of the run).
+        #[arg(long, value_name = "SECONDS", default_value_t = 0.1)]
+        step_time: f64,
         /// Order in which edges reach the estimator: as a robot produces them (an edge when
         /// its later node appears) or as the file lists them.
         #[arg(long, value_enum, default_value = "robot")]
@@ -317,25 +324,39 @@ fn main() -> ExitCode {
             family_wise,
             orientations,
             log,
+            snapshot_every,
+            step_time,
             order,
             estimate,
             info_order,
             json,
         } => {
+            let step_time_ok = step_time.is_finite() && (0.0..1e6).contains(&step_time);
             let config = OnlineConfig {
                 screening: screening.config(family_wise.is_some()),
                 expected_cycles: family_wise.unwrap_or(OnlineConfig::default().expected_cycles),
             };
-            stream::run(stream::StreamArgs {
-                file: &file,
-                info_order: info_order.into(),
-                edge_order: order,
-                estimate,
-                config,
-                orientations: orientations.as_deref(),
-                log: log.as_deref(),
-                json,
-            })
+            if !step_time_ok {
+                Err(format!(
+                    "--step-time {step_time}: must be a number of seconds in [0, 10⁶)"
+                ))
+            } else {
+                stream::run(stream::StreamArgs {
+                    file: &file,
+                    info_order: info_order.into(),
+                    edge_order: order,
+                    estimate,
+                    config,
+                    orientations: orientations.as_deref(),
+                    log: log.as_deref(),
+                    log_options: so2lin::log::LogOptions {
+                        snapshot_every,
+                        ..Default::default()
+                    },
+                    step_time_ns: (step_time * 1e9) as u64,
+                    json,
+                })
+            }
         }
         Command::Replay { log, verify, json } => replay::run(&log, verify, json),
         Command::Plot {
@@ -600,17 +621,19 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
         "so2lin demo --poses {poses} --seed {seed} --sigma-theta {}",
         config.sigma_theta
     );
-    let rec = so2lin::log::Recorder::create(&path, &online, &source, Default::default())
+    let mut rec = so2lin::log::Recorder::create(&path, &online, &source, Default::default())
         .map_err(|e| e.to_string())?;
-    est.attach_recorder(rec);
     let start = std::time::Instant::now();
-    for e in world.graph.edges() {
-        est.add_edge(*e).map_err(|e| e.to_string())?;
+    // A simulated robot at ten steps a second: the log plays back as the map grows.
+    let t0 = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64);
+    for (k, e) in world.graph.edges().iter().enumerate() {
+        rec.add_edge_at(&mut est, *e, t0 + k as u64 * 100_000_000)
+            .map_err(|e| e.to_string())?;
     }
     let stream_ms = 1e3 * start.elapsed().as_secs_f64();
-    if let Some(rec) = est.detach_recorder() {
-        rec.finish(&mut est).map_err(|e| e.to_string())?;
-    }
+    rec.finish(&mut est).map_err(|e| e.to_string())?;
     let finished = est.finish().map_err(|e| e.to_string())?;
     let same = finished.hypotheses.first().map(|h| finished.gamma(h))
         == r.hypotheses.first().map(|h| r.gamma(h));

@@ -41,6 +41,9 @@ pub struct StreamArgs<'a> {
     pub config: OnlineConfig,
     pub orientations: Option<&'a Path>,
     pub log: Option<&'a Path>,
+    pub log_options: LogOptions,
+    /// Log time between steps (the file's edges carry no timestamps).
+    pub step_time_ns: u64,
     pub json: bool,
 }
 
@@ -96,16 +99,23 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         EdgeOrder::Robot => robot_order(&edges),
         EdgeOrder::File => edges,
     };
-    if let Some(path) = args.log {
-        let source = args.file.display().to_string();
-        let rec = Recorder::create(path, &args.config, &source, LogOptions::default())
-            .map_err(|e| e.to_string())?;
-        est.attach_recorder(rec);
-    }
+    let mut recorder = match args.log {
+        Some(path) => {
+            let source = args.file.display().to_string();
+            Some(
+                Recorder::create(path, &args.config, &source, args.log_options)
+                    .map_err(|e| e.to_string())?,
+            )
+        }
+        None => None,
+    };
+    let t0 = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64);
     let bar = crate::progress_bar(edges.len() as u64 * 64, "streaming");
     let (mut all, mut tree, mut cyc) = (Vec::new(), Vec::new(), Vec::new());
     let mut sink = 0.0;
-    for &edge in &edges {
+    for (k, &edge) in edges.iter().enumerate() {
         let t = Instant::now();
         let step = est.add_edge(edge).map_err(|e| e.to_string())?;
         match args.estimate {
@@ -121,6 +131,10 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             }
         }
         let ns = t.elapsed().as_nanos() as u64;
+        if let Some(rec) = recorder.as_mut() {
+            let time = t0.saturating_add((k as u64).saturating_mul(args.step_time_ns));
+            rec.record(&edge, &step, ns, time, &mut est);
+        }
         all.push(ns);
         match step.kind {
             StepKind::Tree { .. } => tree.push(ns),
@@ -132,8 +146,11 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     }
     bar.finish_and_clear();
     std::hint::black_box(sink);
-    if let Some(rec) = est.detach_recorder() {
+    if let Some(rec) = recorder {
         rec.finish(&mut est).map_err(|e| e.to_string())?;
+        if let Some(path) = args.log {
+            eprintln!("log written to {}", path.display());
+        }
     }
     let stream_s = start.elapsed().as_secs_f64();
     let t = Instant::now();
