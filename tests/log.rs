@@ -296,7 +296,8 @@ fn caller_times_and_the_newest_pose_are_in_every_step() {
     let t0 = 1_700_000_000_000_000_000u64;
     let mut newest = Vec::new();
     for (k, e) in w.graph.edges().iter().enumerate() {
-        rec.add_edge_at(&mut est, *e, t0 + k as u64 * 100_000_000).unwrap();
+        rec.add_edge_at(&mut est, *e, t0 + k as u64 * 100_000_000)
+            .unwrap();
         newest.push(est.newest().unwrap().unwrap().1);
     }
     rec.finish(&mut est).unwrap();
@@ -307,7 +308,9 @@ fn caller_times_and_the_newest_pose_are_in_every_step() {
         assert_eq!(m.log_time, m.publish_time);
         assert!(m.log_time >= t0 && m.log_time < t0 + 1000 * 100_000_000);
         let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
-        let stamp = v.get("timestamp").or_else(|| v["entities"][0].get("timestamp"));
+        let stamp = v
+            .get("timestamp")
+            .or_else(|| v["entities"][0].get("timestamp"));
         if let Some(s) = stamp {
             let ns = s["sec"].as_u64().unwrap() * 1_000_000_000 + s["nsec"].as_u64().unwrap();
             assert_eq!(ns, m.log_time, "{}", m.channel.topic);
