@@ -664,10 +664,10 @@ impl OnlineEstimator {
     /// Current poses of all nodes (dense index order), **exact**: the current orientations
     /// with their least-squares positions (anchors at the origin), as
     /// [`OrientationEstimator::poses`](crate::estimate::OrientationEstimator::poses) would
-    /// give. With isotropic translation information (most SLAM data) this re-linearises every
-    /// position row at the current headings in the maintained factor — one forward and one
-    /// back-substitution, no factorisation — and later [`Self::pose`] answers use them;
-    /// otherwise the 2×2-block system is solved from scratch.
+    /// give. With isotropic translation information (most SLAM data) every position row is
+    /// taken at the current headings in the maintained factor — one forward and one
+    /// back-substitution, no factorisation, the factor left as it was; otherwise the
+    /// 2×2-block system is solved from scratch.
     pub fn poses(&mut self) -> Result<Vec<Pose2>, OnlineError> {
         let poses = self.estimate.poses(&self.graph)?;
         self.refresh_counters();
@@ -685,11 +685,11 @@ impl OnlineEstimator {
 
     /// Current pose of a node (None for an unknown node), read from the maintained factors
     /// along the node's path (O(1) for the newest node). The heading is exact. The position
-    /// rows use the tail's heading **as estimated when the edge arrived** (or at the last
-    /// [`Self::poses`], which re-linearises them all), and the isotropic part of the
-    /// translation information: like iSAM2 with a re-linearisation threshold, the fast answer
-    /// lags heading corrections that loop closures make to old nodes; [`Self::poses`] is the
-    /// exact answer on demand.
+    /// rows use the tail's heading **as estimated when the edge arrived** (all of them are
+    /// re-linearised at the current headings whenever the position factor's order is renewed),
+    /// and the isotropic part of the translation information: like iSAM2 with a
+    /// re-linearisation threshold, the fast answer lags heading corrections that loop closures
+    /// make to old nodes; [`Self::poses`] is the exact answer on demand.
     pub fn pose(&mut self, node: NodeId) -> Result<Option<Pose2>, OnlineError> {
         let Some(v) = self.graph.node_index(node) else {
             return Ok(None);

@@ -18,7 +18,18 @@ EXPECTED = {
     "/so2lin/log": "foxglove.Log",
     "/graph": "foxglove.SceneUpdate",
     "/poses": "foxglove.PosesInFrame",
+    "/pose": "foxglove.PoseInFrame",
 }
+
+
+def stamp_ns(msg):
+    """The Foxglove timestamp of a message, if it has one, in ns."""
+    stamp = msg.get("timestamp")
+    if stamp is None and msg.get("entities"):
+        stamp = msg["entities"][0].get("timestamp")
+    if stamp is None:
+        return None
+    return stamp["sec"] * 1_000_000_000 + stamp["nsec"]
 
 
 def check(path):
@@ -37,14 +48,24 @@ def check(path):
             assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
             if schema.id not in validators:
                 validators[schema.id] = jsonschema.Draft202012Validator(json.loads(schema.data))
-            validators[schema.id].validate(json.loads(message.data))
+            data = json.loads(message.data)
+            validators[schema.id].validate(data)
             counts[channel.topic] += 1
+            # One clock: log time, publish time and the Foxglove timestamp agree.
+            assert message.log_time == message.publish_time, f"{path}: {channel.topic}"
+            ns = stamp_ns(data)
+            assert ns is None or ns == message.log_time, f"{path}: {channel.topic} {ns} vs {message.log_time}"
         stats = summary.statistics
     assert counts["/so2lin/edge"] == counts["/so2lin/step"] > 0, f"{path}: {counts}"
     assert counts["/so2lin/estimate"] >= 1, f"{path}: {counts}"
     assert counts["/graph"] == counts["/poses"] == counts["/so2lin/estimate"], f"{path}: {counts}"
+    assert counts["/pose"] == counts["/so2lin/step"], f"{path}: the newest pose every step {counts}"
+    steps = counts["/so2lin/step"]
+    assert counts["/poses"] >= min(20, steps // 100 + 1), f"{path}: snapshots {counts}"
+    span = (stats.message_end_time - stats.message_start_time) / 1e9
+    assert span >= 0.05 * (steps - 1), f"{path}: {steps} steps play back in {span:.2f} s"
     assert sum(counts.values()) == stats.message_count, f"{path}: statistics {stats.message_count}"
-    print(f"{path}: {dict(counts)} — every message valid against its embedded schema")
+    print(f"{path}: {dict(counts)} over {span:.1f} s — every message valid against its embedded schema")
 
 
 if __name__ == "__main__":

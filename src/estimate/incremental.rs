@@ -282,6 +282,18 @@ impl<const K: usize> SqrtInfo<K> {
         self.w_next = next;
     }
 
+    /// The right-hand side d (to save and restore around a temporary [`Self::reset_rhs`]).
+    pub fn rhs(&self) -> &[[f64; K]] {
+        &self.d
+    }
+
+    /// Restore a right-hand side saved by [`Self::rhs`].
+    pub fn set_rhs(&mut self, d: Vec<[f64; K]>) {
+        if d.len() == self.d.len() {
+            self.d = d;
+        }
+    }
+
     /// Every variable's value, indexed by variable (one back-substitution).
     pub fn solve(&self, rhs: usize) -> Vec<f64> {
         let n = self.len();

@@ -16,10 +16,12 @@
 //! measurement — and the isotropic part of the translation information,
 //! `w = (Ω_t,xx + Ω_t,yy)/2` (exact when it is isotropic). So the fast answers
 //! ([`Estimate::pose`]) lag the heading corrections that later loop closures make to old nodes,
-//! like iSAM2 with a relinearisation threshold; [`Estimate::poses`] is the exact answer on
-//! demand: every position row re-linearised at the current headings (one forward and one
-//! back-substitution; a 2×2-block system solved from scratch when the translation information
-//! is not isotropic), after which the fast answers use the refreshed rows.
+//! like iSAM2 with a relinearisation threshold; every position row is re-linearised at the
+//! current headings whenever the position factor's order is renewed (a step-scheduled event, so
+//! the answers do not depend on what was read when). [`Estimate::poses`] is the exact answer on
+//! demand, without changing the factor: every position row at the current headings (one forward
+//! and one back-substitution; a 2×2-block system solved from scratch when the translation
+//! information is not isotropic).
 
 use super::laplacian::Laplacian;
 use crate::estimate::EstimateError;
@@ -103,12 +105,30 @@ impl Estimate {
                 }
                 Op::Step => {
                     self.heads.after_step();
+                    let before = self.positions.renewals;
                     self.positions.after_step();
+                    if self.positions.renewals != before {
+                        let y = self.relinearised(graph);
+                        self.positions.reset_y(y);
+                    }
                 }
             }
         }
         self.pending = pending;
         self.pending.clear();
+    }
+
+    /// Every position row at the current headings.
+    fn relinearised(&mut self, graph: &PoseGraph) -> Vec<[f64; 2]> {
+        let theta = self.heads.all(0);
+        let edges = self.positions.edge_count();
+        graph
+            .endpoints()
+            .iter()
+            .zip(graph.edges())
+            .take(edges)
+            .map(|(&(a, _), e)| rotate(theta[a], e.measurement()))
+            .collect()
     }
 
     /// Orientation of node v (O(1) for the newest).
@@ -137,14 +157,8 @@ impl Estimate {
         if !self.isotropic {
             return crate::estimate::poses(graph, &theta);
         }
-        let y = graph
-            .endpoints()
-            .iter()
-            .zip(graph.edges())
-            .map(|(&(a, _), e)| rotate(theta[a], e.measurement()))
-            .collect();
-        self.positions.reset_y(y);
-        let (x, y) = (self.positions.all(0), self.positions.all(1));
+        let y = self.relinearised(graph);
+        let [x, y] = self.positions.all_for(y);
         Ok((0..theta.len())
             .map(|v| Pose2::new(x[v], y[v], theta[v]))
             .collect())

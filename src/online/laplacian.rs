@@ -172,6 +172,11 @@ impl<const K: usize> Laplacian<K> {
         v
     }
 
+    /// Number of edges.
+    pub fn edge_count(&self) -> usize {
+        self.rows.ends.len()
+    }
+
     /// A new edge from node a to b with weight w and measurement y.
     pub fn add_edge(&mut self, a: usize, b: usize, w: f64, y: [f64; K]) {
         let e = self.rows.ends.len();
@@ -217,6 +222,18 @@ impl<const K: usize> Laplacian<K> {
         let s = self.rows.sqrt_w[e];
         let shift: [f64; K] = std::array::from_fn(|q| s * (y[q] - old[q]));
         self.factor.shift_rhs(&self.rows.entries(e), shift);
+    }
+
+    /// Every node's values (per right-hand side) for other measurements `y`, leaving the
+    /// factor as it was: one forward and one back-substitution.
+    pub fn all_for(&mut self, y: Vec<[f64; K]>) -> [Vec<f64>; K] {
+        let saved_y = std::mem::replace(&mut self.rows.y, y);
+        let saved_d = self.factor.rhs().to_vec();
+        reset_rhs(&mut self.factor, &self.rows);
+        let out = std::array::from_fn(|q| self.all(q));
+        self.rows.y = saved_y;
+        self.factor.set_rhs(saved_d);
+        out
     }
 
     /// Set every edge's measurement and recompute d at once (one forward solve): cheaper
