@@ -20,6 +20,22 @@ use std::collections::HashMap;
 
 use serde::Serialize;
 
+/// Wrap an angle into (−π, π] (the one implementation, shared with the simulator).
+pub use crate::sim::wrap_angle;
+
+/// The largest |dθ| an edge may have, in radians: 2π·2²⁰ (about 6.6·10⁶ rad, a million turns).
+///
+/// Wraps and cycle integers are computed in f64 and i64 from sums of dθ/2π over cycles; up to
+/// this size the sum of a cycle of a million edges stays below 2⁴⁰ turns, where f64 still
+/// resolves a turn to better than 10⁻³ and no integer arithmetic can overflow. A larger dθ
+/// carries no usable information about its wrap and is rejected.
+pub const MAX_ABS_DELTA: f64 = std::f64::consts::TAU * (1u64 << 20) as f64;
+
+/// The largest ratio between the angle information (1/σ²) of two edges of one graph that the
+/// orientation system is solved reliably at in double precision (10¹⁵, about 1/ε of f64);
+/// beyond it factorisations may fail. See [`PoseGraph::information_spread`].
+pub const MAX_INFORMATION_SPREAD: f64 = 1e15;
+
 /// A node id as written in a file or given by a caller. Not assumed dense or ordered.
 pub type NodeId = u64;
 
@@ -183,6 +199,18 @@ pub enum GraphError {
         /// The unknown endpoint.
         node: NodeId,
     },
+    /// |dθ| above [`MAX_ABS_DELTA`]: its wraps cannot be computed.
+    #[error(
+        "edge {from}→{to}: dθ = {delta:e} rad is beyond ±2π·2²⁰ (a million turns): its wraps cannot be computed"
+    )]
+    AngleTooLarge {
+        /// Source node.
+        from: NodeId,
+        /// Target node.
+        to: NodeId,
+        /// The measured angle.
+        delta: f64,
+    },
     /// A node pose with a non-finite component.
     #[error("node {node}: pose is not finite")]
     NonFinitePose {
@@ -225,6 +253,13 @@ impl Edge {
                 from,
                 to,
                 what: "measurement",
+            });
+        }
+        if measurement.theta.abs() > MAX_ABS_DELTA {
+            return Err(GraphError::AngleTooLarge {
+                from,
+                to,
+                delta: measurement.theta,
             });
         }
         if information.0.iter().any(|v| !v.is_finite()) {
@@ -295,6 +330,18 @@ impl Edge {
     pub fn is_odometric(&self) -> bool {
         self.from.abs_diff(self.to) == 1
     }
+}
+
+/// Two edges whose angle information differs by more than [`MAX_INFORMATION_SPREAD`]
+/// ([`PoseGraph::information_spread`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct InformationSpread {
+    /// Index of the edge of largest angle information.
+    pub high: usize,
+    /// Index of the edge of smallest angle information.
+    pub low: usize,
+    /// The ratio of the two informations.
+    pub ratio: f64,
 }
 
 /// A node of the graph.
@@ -409,6 +456,25 @@ impl PoseGraph {
     /// Dense index of a node id.
     pub fn node_index(&self, id: NodeId) -> Option<usize> {
         self.index.get(&id).copied()
+    }
+
+    /// The edges of largest and smallest angle information 1/σ² and the ratio between them, if
+    /// the ratio exceeds [`MAX_INFORMATION_SPREAD`]: a diagnosis for a linear system that failed
+    /// to factor (both edges are valid on their own).
+    pub fn information_spread(&self) -> Option<InformationSpread> {
+        let by = |cmp: fn(f64, f64) -> bool| {
+            let mut best: Option<usize> = None;
+            for (e, edge) in self.edges.iter().enumerate() {
+                if best.is_none_or(|b| cmp(1.0 / edge.sigma2, 1.0 / self.edges[b].sigma2)) {
+                    best = Some(e);
+                }
+            }
+            best
+        };
+        let (high, low) = (by(|a, b| a > b)?, by(|a, b| a < b)?);
+        let info = |e: usize| 1.0 / self.edges[e].sigma2;
+        let ratio = info(high) / info(low);
+        (ratio > MAX_INFORMATION_SPREAD).then_some(InformationSpread { high, low, ratio })
     }
 
     /// Connected components: a component label (0-based, in order of first node) per node,

@@ -69,12 +69,30 @@ pub enum LogError {
         /// The error.
         source: std::io::Error,
     },
-    /// The MCAP layer.
+    /// The MCAP layer failed while writing.
     #[error("MCAP: {0}")]
-    Mcap(#[from] mcap::McapError),
+    Mcap(String),
+    /// The file is damaged: a CRC mismatch, an impossible length, undecodable compressed data,
+    /// or a malformed record or message.
+    #[error("corrupt log near byte {offset}: {what} ({intact_steps} steps before it are intact)")]
+    Corrupt {
+        /// How far reading got, in bytes from the start of the file.
+        offset: u64,
+        /// What was wrong.
+        what: String,
+        /// Complete steps read before the damage.
+        intact_steps: usize,
+    },
     /// Not a so2lin log, or a malformed message.
     #[error("not a valid so2lin log: {0}")]
     Format(String),
+}
+
+#[doc(hidden)]
+impl From<mcap::McapError> for LogError {
+    fn from(e: mcap::McapError) -> Self {
+        LogError::Mcap(e.to_string())
+    }
 }
 
 /// Something a recorder can write into.
@@ -136,65 +154,152 @@ impl LogContents {
     }
 }
 
-/// Read a log linearly, tolerating a cut: everything before the first damaged record is
-/// returned, and `truncated` says why reading stopped.
+/// How many times its file size a log's records may expand when decompressed: the bound on
+/// every record and chunk [`read_log`] decompresses (at least [`MIN_RECORD_LIMIT`]). A length
+/// field beyond it is reported as corruption before anything is allocated for it. so2lin's own
+/// logs expand about 4–8× (JSON in zstd level 1).
+pub const MAX_EXPANSION: usize = 64;
+
+/// The smallest record bound, for tiny files: 1 MiB.
+pub const MIN_RECORD_LIMIT: usize = 1 << 20;
+
+/// The bound on any one record or decompressed chunk of a log of `file_len` bytes:
+/// `max(file_len · MAX_EXPANSION, MIN_RECORD_LIMIT)`.
+pub fn record_limit(file_len: usize) -> usize {
+    file_len.saturating_mul(MAX_EXPANSION).max(MIN_RECORD_LIMIT)
+}
+
+/// Read a log linearly, tolerating a cut: everything before the cut is returned, and
+/// `truncated` says why reading stopped.
+///
+/// Every chunk's CRC is checked before any of its records is used, and the data section's CRC
+/// at its end; every record and decompressed chunk is bounded by [`record_limit`] of the
+/// file's length, so a damaged length field is an error, never an allocation. A file that ends
+/// inside a record is a cut ([`LogContents::truncated`]); any other damage (a CRC mismatch, an
+/// impossible length, undecodable compressed data, a malformed record or message) is
+/// [`LogError::Corrupt`], naming where reading stopped and how many steps before it were
+/// intact.
 pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
-    use mcap::read::Options;
-    let mut metadata = None;
-    let mut truncated = None;
+    use mcap::records::Record;
+    use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
+
     if bytes.len() < 8 || &bytes[..8] != mcap::MAGIC {
         return Err(LogError::Format("not an MCAP file (bad magic)".into()));
     }
-    let records =
-        mcap::read::LinearReader::new_with_options(bytes, Options::IgnoreEndMagic.into())?;
-    for r in records {
-        match r {
-            Ok(mcap::records::Record::Metadata(m)) if m.name == "so2lin" => {
-                metadata = Some(m.metadata);
-                break;
-            }
-            Ok(_) => {}
-            Err(_) => break,
-        }
-    }
-    let metadata = metadata.ok_or_else(|| LogError::Format("no so2lin metadata record".into()))?;
+    let options = LinearReaderOptions::default()
+        .with_skip_end_magic(true)
+        .with_prevalidate_chunk_crcs(true)
+        .with_validate_data_section_crc(true)
+        .with_record_length_limit(record_limit(bytes.len()));
+    let mut reader = LinearReader::new_with_options(options);
+    let mut rest = bytes;
+    let mut metadata = None;
+    let mut topics: BTreeMap<u16, String> = BTreeMap::new();
     let (mut edges, mut steps) = (Vec::new(), Vec::new());
-    let stream = mcap::MessageStream::new_with_options(bytes, Options::IgnoreEndMagic.into())?;
-    for m in stream {
-        let m = match m {
-            Ok(m) => m,
+    let mut truncated = None;
+    // Corruption found while reading: (offset reached, what).
+    let mut corrupt: Option<(usize, String)> = None;
+    while let Some(event) = reader.next_event() {
+        let offset = bytes.len() - rest.len();
+        let record = match event {
+            Ok(LinearReadEvent::ReadRequest(need)) => {
+                let n = need.min(rest.len());
+                reader.insert(n).copy_from_slice(&rest[..n]);
+                reader.notify_read(n);
+                rest = &rest[n..];
+                continue;
+            }
+            Ok(LinearReadEvent::Record { opcode, data }) => {
+                match mcap::parse_record(opcode, data) {
+                    Ok(r) => r,
+                    Err(e) => {
+                        corrupt = Some((
+                            offset,
+                            format!("malformed record (opcode {opcode:#04x}): {e}"),
+                        ));
+                        break;
+                    }
+                }
+            }
+            Err(mcap::McapError::UnexpectedEof) => {
+                truncated = Some("the file ends inside a record".to_owned());
+                break;
+            }
             Err(e) => {
-                truncated = Some(e.to_string());
+                corrupt = Some((offset, e.to_string()));
                 break;
             }
         };
-        let parse = || -> Result<Value, LogError> {
-            serde_json::from_slice(&m.data).map_err(|e| LogError::Format(e.to_string()))
-        };
-        match m.channel.topic.as_str() {
-            "/so2lin/edge" => edges.push((m.log_time, edge_from_json(&parse()?)?)),
-            "/so2lin/step" => steps.push((m.log_time, parse()?)),
+        match record {
+            Record::Metadata(m) if m.name == "so2lin" => {
+                metadata.get_or_insert(m.metadata);
+            }
+            Record::Channel(c) => {
+                topics.insert(c.id, c.topic);
+            }
+            Record::Message { header, data } => {
+                let Some(topic) = topics.get(&header.channel_id) else {
+                    corrupt = Some((
+                        offset,
+                        format!("message on unknown channel {}", header.channel_id),
+                    ));
+                    break;
+                };
+                let parsed = match topic.as_str() {
+                    "/so2lin/edge" => parse_json(&data)
+                        .and_then(|v| edge_from_json(&v))
+                        .map(|e| edges.push((header.log_time, e))),
+                    "/so2lin/step" => parse_json(&data).map(|v| steps.push((header.log_time, v))),
+                    _ => Ok(()),
+                };
+                if let Err(e) = parsed {
+                    corrupt = Some((
+                        offset,
+                        format!("{topic} message at step {}: {e}", header.log_time),
+                    ));
+                    break;
+                }
+            }
+            Record::DataEnd(_) => break,
             _ => {}
         }
     }
-    if truncated.is_none() && !bytes.ends_with(mcap::MAGIC) {
+    if truncated.is_none() && corrupt.is_none() && !bytes.ends_with(mcap::MAGIC) {
         truncated = Some("the file does not end with the MCAP magic".into());
     }
     // Keep only steps whose edge and outcome were both recorded, in step order.
     edges.sort_by_key(|x| x.0);
     steps.sort_by_key(|x| x.0);
     let n = edges.len().min(steps.len());
-    for (k, ((te, _), (ts, _))) in edges.iter().zip(&steps).take(n).enumerate() {
-        if *te != k as u64 || *ts != k as u64 {
-            return Err(LogError::Format(format!("step {k} is missing")));
-        }
+    let missing = edges
+        .iter()
+        .zip(&steps)
+        .take(n)
+        .enumerate()
+        .find(|(k, ((te, _), (ts, _)))| *te != *k as u64 || *ts != *k as u64)
+        .map(|(k, _)| k);
+    if let Some((offset, what)) = corrupt {
+        let intact = missing.unwrap_or(n);
+        return Err(LogError::Corrupt {
+            offset: offset as u64,
+            what,
+            intact_steps: intact,
+        });
     }
+    if let Some(k) = missing {
+        return Err(LogError::Format(format!("step {k} is missing")));
+    }
+    let metadata = metadata.ok_or_else(|| LogError::Format("no so2lin metadata record".into()))?;
     Ok(LogContents {
         metadata,
         edges: edges.into_iter().take(n).map(|x| x.1).collect(),
         steps: steps.into_iter().take(n).map(|x| x.1).collect(),
         truncated,
     })
+}
+
+fn parse_json(data: &[u8]) -> Result<Value, LogError> {
+    serde_json::from_slice(data).map_err(|e| LogError::Format(e.to_string()))
 }
 
 fn edge_from_json(v: &Value) -> Result<Edge, LogError> {

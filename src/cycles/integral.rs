@@ -322,12 +322,13 @@ impl IntegerLu {
                     acc = ck(acc.checked_sub(ck(v.checked_mul(k[col as usize]))?))?;
                 }
             }
-            if pv == 0 || acc % pv != 0 {
+            // i64::MIN / −1 overflows: checked.
+            if pv == 0 || ck(acc.checked_rem(pv))? != 0 {
                 return Err(IntegerError::Fractional {
                     cycle: self.cycle[r as usize] as usize,
                 });
             }
-            k[c as usize] = acc / pv;
+            k[c as usize] = ck(acc.checked_div(pv))?;
         }
         Ok(())
     }
