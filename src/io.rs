@@ -168,9 +168,10 @@ pub enum LineError {
     Graph(#[from] GraphError),
 }
 
-/// A reading error: file, 1-based line number, and what was wrong.
+/// A reading error: file, 1-based line number, and what was wrong. Displayed as
+/// `file:line: what`, or `file: what` for errors not tied to a line.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
-#[error("{file}:{line}: {kind}")]
+#[error("{file}{}: {kind}", if *line > 0 { format!(":{line}") } else { String::new() })]
 pub struct ReadError {
     /// File name (or a label for in-memory input).
     pub file: String,

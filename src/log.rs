@@ -90,8 +90,16 @@ pub enum LogError {
 
 #[doc(hidden)]
 impl From<mcap::McapError> for LogError {
+    /// The error and its chain of causes as one message (the `mcap` crate's type stays out of
+    /// the public API).
     fn from(e: mcap::McapError) -> Self {
-        LogError::Mcap(e.to_string())
+        let mut text = e.to_string();
+        let mut cause = std::error::Error::source(&e);
+        while let Some(c) = cause {
+            text = format!("{text}: {c}");
+            cause = c.source();
+        }
+        LogError::Mcap(text)
     }
 }
 
@@ -209,8 +217,13 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
                 rest = &rest[n..];
                 continue;
             }
+            // Only the records a so2lin log is read from are parsed, and only once every
+            // length inside them fits the record (the parser would allocate from it).
+            Ok(LinearReadEvent::Record { opcode, .. }) if !PARSED.contains(&opcode) => continue,
             Ok(LinearReadEvent::Record { opcode, data }) => {
-                match mcap::parse_record(opcode, data) {
+                match fields_fit(opcode, data)
+                    .and_then(|()| mcap::parse_record(opcode, data).map_err(|e| e.to_string()))
+                {
                     Ok(r) => r,
                     Err(e) => {
                         corrupt = Some((
@@ -296,6 +309,65 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
         steps: steps.into_iter().take(n).map(|x| x.1).collect(),
         truncated,
     })
+}
+
+/// Opcodes of the records [`read_log`] parses: channel, message, metadata, data end.
+const PARSED: [u8; 4] = [0x04, 0x05, 0x0C, 0x0F];
+
+/// Whether every length-prefixed field of a channel or metadata record fits in the record
+/// (the others have no such field).
+fn fields_fit(opcode: u8, data: &[u8]) -> Result<(), String> {
+    struct Cursor<'a>(&'a [u8]);
+    impl Cursor<'_> {
+        fn skip(&mut self, n: usize) -> Result<(), String> {
+            match self.0.get(n..) {
+                Some(rest) => {
+                    self.0 = rest;
+                    Ok(())
+                }
+                None => Err(format!("a field of {n} bytes with {} left", self.0.len())),
+            }
+        }
+        fn len(&mut self) -> Result<usize, String> {
+            let bytes: [u8; 4] = self
+                .0
+                .get(..4)
+                .and_then(|b| b.try_into().ok())
+                .ok_or("a length cut short")?;
+            self.0 = &self.0[4..];
+            Ok(u32::from_le_bytes(bytes) as usize)
+        }
+        fn string(&mut self) -> Result<(), String> {
+            let n = self.len()?;
+            self.skip(n)
+        }
+        fn string_map(&mut self) -> Result<(), String> {
+            let n = self.len()?;
+            let mut inner = Cursor(
+                self.0
+                    .get(..n)
+                    .ok_or_else(|| format!("a map of {n} bytes with {} left", self.0.len()))?,
+            );
+            while !inner.0.is_empty() {
+                inner.string()?;
+                inner.string()?;
+            }
+            self.skip(n)
+        }
+    }
+    let mut c = Cursor(data);
+    let checked = match opcode {
+        // Channel: id, schema id, topic, message encoding, metadata.
+        0x04 => c
+            .skip(4)
+            .and_then(|()| c.string())
+            .and_then(|()| c.string())
+            .and_then(|()| c.string_map()),
+        // Metadata: name, metadata.
+        0x0C => c.string().and_then(|()| c.string_map()),
+        _ => Ok(()),
+    };
+    checked.map_err(|e| format!("record (opcode {opcode:#04x}) claims {e}"))
 }
 
 fn parse_json(data: &[u8]) -> Result<Value, LogError> {
