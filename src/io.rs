@@ -45,7 +45,7 @@ pub const MAX_LINE_BYTES: usize = 1 << 20;
 const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
 
 /// Order of the six information entries on an edge line.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub enum InfoOrder {
     /// Detect from positive definiteness (see the module docs).
     #[default]
@@ -67,7 +67,8 @@ impl InfoOrder {
 }
 
 /// Options for reading a graph file.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct ReadOptions {
     /// Information-matrix order (default: detect).
     pub order: InfoOrder,

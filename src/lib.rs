@@ -33,10 +33,12 @@
 
 pub mod batch;
 pub mod cycles;
+pub mod error;
 pub mod estimate;
 pub mod gamma;
 pub mod graph;
 pub mod io;
+#[cfg(feature = "mcap")]
 pub mod log;
 pub mod online;
 pub mod refine;
@@ -45,6 +47,7 @@ pub mod sim;
 pub mod tree;
 pub mod wraps;
 
+pub use error::{Error, Result};
 pub use graph::{Edge, GraphError, Information, NodeId, NodePolicy, Pose2, PoseGraph};
 pub use io::{InfoOrder, ReadError, ReadOptions, Reader, Record};
 

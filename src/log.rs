@@ -36,15 +36,17 @@ use crate::screening::ScreeningConfig;
 /// Version of the so2lin channels' message layout.
 pub const SCHEMA_VERSION: &str = "1";
 
-/// Recording options.
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// Recording options. Defaults: a snapshot every 5000 steps, a flush at least every 64
+/// steps, and after every loop closure.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct LogOptions {
-    /// Orientation snapshot every this many steps (0: only at the end).
+    /// Orientation snapshot every this many steps (0: only at the end). Default 5000.
     pub snapshot_every: usize,
-    /// Flush (close the chunk) at least every this many steps.
+    /// Flush (close the chunk) at least every this many steps. Default 64.
     pub flush_every: usize,
     /// Also flush after every loop closure (steps that queue up behind the writer share one
-    /// flush).
+    /// flush). Default true.
     pub flush_on_loop_closure: bool,
 }
 

@@ -25,7 +25,8 @@ use std::time::Instant;
 use crate::gamma::{Conditioner, GammaModel, Moments, SingularError};
 
 /// Screening settings.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct ScreeningConfig {
     /// Significance level α.
     pub alpha: f64,

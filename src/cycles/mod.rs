@@ -113,7 +113,8 @@ impl Cycle {
 }
 
 /// Which basis.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum BasisKind {
     /// Fundamental basis of the odometric tree `T_o`.
