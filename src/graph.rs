@@ -1,4 +1,4 @@
-//! The pose-graph model (METHOD.md §1).
+//! The pose-graph model (method [§1](crate::method#1-model)).
 //!
 //! A pose graph has nodes with optional initial poses and directed edges `e = (i, j)`, each
 //! carrying a measured relative pose `(dx, dy, dθ)` and its 3×3 information matrix `Ω`

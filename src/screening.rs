@@ -1,4 +1,4 @@
-//! Screening the cycle integers γ (METHOD.md §3, §4, §8).
+//! Screening the cycle integers γ (method [§3](crate::method#3-first-screening), [§4](crate::method#4-second-screening), [§8](crate::method#8-success-probability)).
 //!
 //! **First screening** (per cycle): with `q = sqrt(χ²_d⁻¹(1 − α'))`, the candidates of γ_i are
 //! the integers in `[m_i − q s_i, m_i + q s_i]`, where `(m_i, s_i²)` are the mean and variance of
@@ -634,7 +634,7 @@ impl Screener {
             .sum()
     }
 
-    /// First screening iterated to its fixed point (METHOD.md §3): every undetermined cycle is
+    /// First screening iterated to its fixed point (method [§3](crate::method#3-first-screening)): every undetermined cycle is
     /// tested conditioned on the determined set; the newly determined are appended in a
     /// fill-reducing order; repeat until nothing changes. Appends its rows to `rows`.
     pub fn first_screening(
@@ -674,7 +674,7 @@ impl Screener {
         }
     }
 
-    /// Second screening iterated (METHOD.md §4), then the hypotheses, their χ² and the
+    /// Second screening iterated (method [§4](crate::method#4-second-screening)), then the hypotheses, their χ² and the
     /// success-rate bound. `first` are the first-screening rows already run.
     pub fn finish(
         &mut self,

@@ -1,4 +1,4 @@
-//! From cycle integers γ to edge wraps k (METHOD.md §5).
+//! From cycle integers γ to edge wraps k (method [§5](crate::method#5-wraps-and-orientations)).
 //!
 //! Order the edges as tree edges then chords, `C = [C_T C_L]`; then `k = [0; C_L⁻¹ γ]` solves
 //! `C k = γ`, and every solution gives the same orientations modulo 2π (paper Prop. 1).

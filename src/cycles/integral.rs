@@ -1,5 +1,5 @@
 //! Integrality of a cycle basis: `|det C_L|` exactly, and an exact integer solver for
-//! `C k = γ` (METHOD.md §5), used by [`crate::wraps::WrapSolver`].
+//! `C k = γ` (method [§5](crate::method#5-wraps-and-orientations)), used by [`crate::wraps::WrapSolver`].
 //!
 //! **Invariance.** `C = Z F_T` for any spanning tree T, with `F_T` the fundamental basis of T
 //! (a network matrix, totally unimodular) and `Z` integral, so by Cauchy–Binet every nonzero
