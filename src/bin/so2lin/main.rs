@@ -461,17 +461,41 @@ fn main() -> ExitCode {
     }
 }
 
-/// A byte-progress bar on a terminal, hidden otherwise.
+/// A byte-progress bar with rate and ETA on a terminal, hidden otherwise (stderr redirected).
 pub(crate) fn progress_bar(len: u64, what: &str) -> ProgressBar {
     if !std::io::stderr().is_terminal() {
         return ProgressBar::hidden();
     }
     let bar = ProgressBar::new(len);
-    if let Ok(style) = ProgressStyle::with_template("{msg} [{bar:30}] {bytes}/{total_bytes}") {
+    let template = "{msg} [{bar:30}] {bytes}/{total_bytes} ({bytes_per_sec}, ETA {eta})";
+    if let Ok(style) = ProgressStyle::with_template(template) {
         bar.set_style(style);
     }
     bar.set_message(what.to_owned());
     bar
+}
+
+/// A phase of unknown length (screening, estimating, refining, plotting) shown as a spinner
+/// with its elapsed time on a terminal, hidden otherwise; clear it with `finish_and_clear`.
+pub(crate) fn phase(what: String) -> ProgressBar {
+    if !std::io::stderr().is_terminal() {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new_spinner();
+    if let Ok(style) = ProgressStyle::with_template("{spinner} {msg} ({elapsed})") {
+        bar.set_style(style);
+    }
+    bar.set_message(what);
+    bar.enable_steady_tick(std::time::Duration::from_millis(100));
+    bar
+}
+
+/// `f` run as a [`phase`] named `what`.
+pub(crate) fn in_phase<T>(what: impl Into<String>, f: impl FnOnce() -> T) -> T {
+    let bar = phase(what.into());
+    let out = f();
+    bar.finish_and_clear();
+    out
 }
 
 /// Read a graph file, with a progress bar on a terminal. Skipped lines are reported on stderr
@@ -708,8 +732,11 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
     // The paper's batch pipeline on the simulated graph, checked against the ground truth.
     let start = std::time::Instant::now();
     let cfg = BatchConfig::default();
-    let r = so2lin::batch::screen(&world.graph, &cfg).map_err(|e| e.to_string())?;
-    let est = screen::estimate_best(&world.graph, &r)?;
+    let r = in_phase("screening", || so2lin::batch::screen(&world.graph, &cfg))
+        .map_err(|e| e.to_string())?;
+    let est = in_phase("estimating orientations", || {
+        screen::estimate_best(&world.graph, &r)
+    })?;
     let truth = so2lin::wraps::gamma_of(&r.basis.cycles, &world.truth.wraps);
     let best_is_truth = r.hypotheses.first().is_some_and(|h| r.gamma(h) == truth);
     println!(

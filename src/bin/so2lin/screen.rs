@@ -53,8 +53,14 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
     let t0 = Instant::now();
     let (graph, _) = crate::load(args.file, args.order)?;
     let read_s = t0.elapsed().as_secs_f64();
-    let r = batch::screen(&graph, &args.config).map_err(|e| e.to_string())?;
-    let est = estimate_best(&graph, &r)?;
+    let what = format!(
+        "screening {} edges, {} cycles",
+        graph.edge_count(),
+        graph.stats().cycles
+    );
+    let r =
+        crate::in_phase(what, || batch::screen(&graph, &args.config)).map_err(|e| e.to_string())?;
+    let est = crate::in_phase("estimating orientations", || estimate_best(&graph, &r))?;
     let total = t0.elapsed().as_secs_f64();
     if let (Some(path), Some(e)) = (args.orientations, &est) {
         write_orientations(path, &graph, &e.theta)?;
