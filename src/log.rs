@@ -202,6 +202,9 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
         .with_validate_data_section_crc(true)
         .with_record_length_limit(record_limit(bytes.len()));
     let mut reader = LinearReader::new_with_options(options);
+    reader
+        .add_decompressor(BoundedZstd::new(bytes.len()))
+        .map_err(LogError::from)?;
     let mut rest = bytes;
     let mut metadata = None;
     let mut topics: BTreeMap<u16, String> = BTreeMap::new();
@@ -311,6 +314,111 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
         steps: steps.into_iter().take(n).map(|x| x.1).collect(),
         truncated,
     })
+}
+
+/// zstd chunk decoding whose window (what the decoder allocates, in zstd's own C code, for a
+/// frame) is bounded by [`record_limit`] of the file: mcap's built-in decoder accepts any window
+/// up to 128 MiB that a frame header asks for.
+struct BoundedZstd {
+    stream: Option<zstd::zstd_safe::DStream<'static>>,
+    need: usize,
+    window_log: u32,
+}
+
+impl BoundedZstd {
+    fn new(file_len: usize) -> Self {
+        let limit = record_limit(file_len);
+        // The smallest power of two ≥ the limit, within zstd's range [2^10, 2^27].
+        let window_log = limit.next_power_of_two().trailing_zeros().clamp(10, 27);
+        Self {
+            stream: None,
+            need: 0,
+            window_log,
+        }
+    }
+}
+
+fn zstd_result(r: zstd::zstd_safe::SafeResult) -> Result<usize, mcap::McapError> {
+    r.map_err(|code| {
+        mcap::McapError::DecompressionError(zstd::zstd_safe::get_error_name(code).into())
+    })
+}
+
+impl mcap::sans_io::decompressor::Decompressor for BoundedZstd {
+    fn next_read_size(&self) -> usize {
+        self.need
+    }
+
+    fn decompress(
+        &mut self,
+        src: &[u8],
+        dst: &mut [u8],
+    ) -> Result<mcap::sans_io::decompressor::DecompressResult, mcap::McapError> {
+        use zstd::zstd_safe::{DParameter, DStream, InBuffer, OutBuffer};
+        if self.stream.is_none() {
+            let mut stream = DStream::create();
+            zstd_result(stream.init())?;
+            zstd_result(stream.set_parameter(DParameter::WindowLogMax(self.window_log)))?;
+            self.stream = Some(stream);
+        }
+        let Some(stream) = self.stream.as_mut() else {
+            return Err(mcap::McapError::DecompressionError("no zstd stream".into()));
+        };
+        let mut input = InBuffer::around(src);
+        let mut output = OutBuffer::around(dst);
+        self.need = zstd_result(stream.decompress_stream(&mut output, &mut input))?;
+        Ok(mcap::sans_io::decompressor::DecompressResult {
+            consumed: input.pos,
+            wrote: output.pos(),
+        })
+    }
+
+    fn reset(&mut self) -> Result<(), mcap::McapError> {
+        self.need = 0;
+        if let Some(stream) = self.stream.as_mut() {
+            zstd_result(stream.reset(zstd::zstd_safe::ResetDirective::SessionOnly))?;
+        }
+        Ok(())
+    }
+
+    fn name(&self) -> &'static str {
+        "zstd"
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mcap::sans_io::decompressor::Decompressor;
+
+    fn frame(window_log: u32, data: &[u8]) -> Vec<u8> {
+        let mut enc = zstd::stream::Encoder::new(Vec::new(), 1).unwrap();
+        enc.include_contentsize(false).unwrap();
+        enc.window_log(window_log).unwrap();
+        enc.long_distance_matching(true).unwrap();
+        std::io::Write::write_all(&mut enc, data).unwrap();
+        enc.finish().unwrap()
+    }
+
+    #[test]
+    fn zstd_windows_beyond_the_record_limit_are_refused() {
+        let data = b"so2lin so2lin so2lin so2lin".repeat(100);
+        // A 10 kB file: records up to 1 MiB, window up to 2^20.
+        let mut d = BoundedZstd::new(10_000);
+        assert_eq!(d.window_log, 20);
+        let mut out = vec![0; data.len()];
+        let small = frame(20, &data);
+        let r = d.decompress(&small, &mut out).unwrap();
+        assert_eq!(&out[..r.wrote], &data[..]);
+        // A frame asking for a 128 MiB window is an error before zstd allocates it.
+        d.reset().unwrap();
+        let big = frame(27, &data);
+        let e = d.decompress(&big, &mut out).unwrap_err();
+        assert!(
+            e.to_string().contains("Frame requires too much memory"),
+            "{e}"
+        );
+    }
 }
 
 /// Opcodes of the records [`read_log`] parses: channel, message, metadata, data end.
