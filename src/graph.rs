@@ -1,4 +1,4 @@
-//! The pose-graph model (METHOD.md §1).
+//! The pose-graph model (method [§1](crate::method#1-model)).
 //!
 //! A pose graph has nodes with optional initial poses and directed edges `e = (i, j)`, each
 //! carrying a measured relative pose `(dx, dy, dθ)` and its 3×3 information matrix `Ω`
@@ -18,13 +18,29 @@
 
 use std::collections::HashMap;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
+
+/// Wrap an angle into (−π, π] (the one implementation, shared with the simulator).
+pub use crate::sim::wrap_angle;
+
+/// The largest |dθ| an edge may have, in radians: 2π·2²⁰ (about 6.6·10⁶ rad, a million turns).
+///
+/// Wraps and cycle integers are computed in f64 and i64 from sums of dθ/2π over cycles; up to
+/// this size the sum of a cycle of a million edges stays below 2⁴⁰ turns, where f64 still
+/// resolves a turn to better than 10⁻³ and no integer arithmetic can overflow. A larger dθ
+/// carries no usable information about its wrap and is rejected.
+pub const MAX_ABS_DELTA: f64 = std::f64::consts::TAU * (1u64 << 20) as f64;
+
+/// The largest ratio between the angle information (1/σ²) of two edges of one graph that the
+/// orientation system is solved reliably at in double precision (10¹⁵, about 1/ε of f64);
+/// beyond it factorisations may fail. See [`PoseGraph::information_spread`].
+pub const MAX_INFORMATION_SPREAD: f64 = 1e15;
 
 /// A node id as written in a file or given by a caller. Not assumed dense or ordered.
 pub type NodeId = u64;
 
 /// A planar pose or relative pose `(x, y, θ)`, θ in radians (any real number).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Pose2 {
     /// x coordinate.
     pub x: f64,
@@ -73,9 +89,25 @@ impl Pose2 {
     }
 }
 
+/// With the `nalgebra` feature: a pose as an isometry (rotation by θ, then translation).
+#[cfg(feature = "nalgebra")]
+impl From<Pose2> for nalgebra::Isometry2<f64> {
+    fn from(p: Pose2) -> Self {
+        nalgebra::Isometry2::new(nalgebra::Vector2::new(p.x, p.y), p.theta)
+    }
+}
+
+/// With the `nalgebra` feature: an isometry as a pose, θ = its rotation angle in (−π, π].
+#[cfg(feature = "nalgebra")]
+impl From<nalgebra::Isometry2<f64>> for Pose2 {
+    fn from(i: nalgebra::Isometry2<f64>) -> Self {
+        Pose2::new(i.translation.x, i.translation.y, i.rotation.angle())
+    }
+}
+
 /// The 3×3 symmetric information matrix of an edge, in `(x, y, θ)` order, stored as its
 /// upper triangle in g2o order: `[I11, I12, I13, I22, I23, I33]`.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Information(pub [f64; 6]);
 
 impl Information {
@@ -183,6 +215,18 @@ pub enum GraphError {
         /// The unknown endpoint.
         node: NodeId,
     },
+    /// |dθ| above [`MAX_ABS_DELTA`]: its wraps cannot be computed.
+    #[error(
+        "edge {from}→{to}: dθ = {delta:e} rad is beyond ±2π·2²⁰ (a million turns): its wraps cannot be computed"
+    )]
+    AngleTooLarge {
+        /// Source node.
+        from: NodeId,
+        /// Target node.
+        to: NodeId,
+        /// The measured angle.
+        delta: f64,
+    },
     /// A node pose with a non-finite component.
     #[error("node {node}: pose is not finite")]
     NonFinitePose {
@@ -200,13 +244,31 @@ pub enum GraphError {
 /// A validated measurement edge `from → to`.
 ///
 /// Construct with [`Edge::new`]; the angle variance σ² is derived once and cached.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+/// Deserialising validates like [`Edge::new`] (a `sigma2` field, if present, is ignored).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "EdgeFields")]
 pub struct Edge {
     from: NodeId,
     to: NodeId,
     measurement: Pose2,
     information: Information,
     sigma2: f64,
+}
+
+/// The fields an edge is deserialised from, validated by [`Edge::new`].
+#[derive(Deserialize)]
+struct EdgeFields {
+    from: NodeId,
+    to: NodeId,
+    measurement: Pose2,
+    information: Information,
+}
+
+impl TryFrom<EdgeFields> for Edge {
+    type Error = GraphError;
+    fn try_from(f: EdgeFields) -> Result<Self, GraphError> {
+        Edge::new(f.from, f.to, f.measurement, f.information)
+    }
 }
 
 impl Edge {
@@ -225,6 +287,13 @@ impl Edge {
                 from,
                 to,
                 what: "measurement",
+            });
+        }
+        if measurement.theta.abs() > MAX_ABS_DELTA {
+            return Err(GraphError::AngleTooLarge {
+                from,
+                to,
+                delta: measurement.theta,
             });
         }
         if information.0.iter().any(|v| !v.is_finite()) {
@@ -297,6 +366,18 @@ impl Edge {
     }
 }
 
+/// Two edges whose angle information differs by more than [`MAX_INFORMATION_SPREAD`]
+/// ([`PoseGraph::information_spread`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct InformationSpread {
+    /// Index of the edge of largest angle information.
+    pub high: usize,
+    /// Index of the edge of smallest angle information.
+    pub low: usize,
+    /// The ratio of the two informations.
+    pub ratio: f64,
+}
+
 /// A node of the graph.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct Node {
@@ -307,7 +388,7 @@ pub struct Node {
 }
 
 /// Whether an edge may introduce nodes that were not added before.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub enum NodePolicy {
     /// An edge to an unseen node creates it (files without vertex lines, online use).
     #[default]
@@ -409,6 +490,25 @@ impl PoseGraph {
     /// Dense index of a node id.
     pub fn node_index(&self, id: NodeId) -> Option<usize> {
         self.index.get(&id).copied()
+    }
+
+    /// The edges of largest and smallest angle information 1/σ² and the ratio between them, if
+    /// the ratio exceeds [`MAX_INFORMATION_SPREAD`]: a diagnosis for a linear system that failed
+    /// to factor (both edges are valid on their own).
+    pub fn information_spread(&self) -> Option<InformationSpread> {
+        let by = |cmp: fn(f64, f64) -> bool| {
+            let mut best: Option<usize> = None;
+            for (e, edge) in self.edges.iter().enumerate() {
+                if best.is_none_or(|b| cmp(1.0 / edge.sigma2, 1.0 / self.edges[b].sigma2)) {
+                    best = Some(e);
+                }
+            }
+            best
+        };
+        let (high, low) = (by(|a, b| a > b)?, by(|a, b| a < b)?);
+        let info = |e: usize| 1.0 / self.edges[e].sigma2;
+        let ratio = info(high) / info(low);
+        (ratio > MAX_INFORMATION_SPREAD).then_some(InformationSpread { high, low, ratio })
     }
 
     /// Connected components: a component label (0-based, in order of first node) per node,
@@ -561,6 +661,53 @@ mod tests {
 
     fn e(from: NodeId, to: NodeId) -> Edge {
         Edge::with_sigmas(from, to, Pose2::new(1.0, 0.0, 0.1), 0.1, 0.05).unwrap()
+    }
+
+    #[test]
+    fn absurd_angles_are_rejected_and_spread_is_named() {
+        let info = Information::diagonal(1.0, 1.0, 1.0);
+        for delta in [1e300, -1e300, MAX_ABS_DELTA * 1.0001] {
+            let err = Edge::new(0, 1, Pose2::new(0.0, 0.0, delta), info).unwrap_err();
+            assert!(matches!(err, GraphError::AngleTooLarge { .. }), "{err}");
+        }
+        assert!(Edge::new(0, 1, Pose2::new(0.0, 0.0, MAX_ABS_DELTA), info).is_ok());
+        let mut g = PoseGraph::new();
+        g.add_edge(e(0, 1), NodePolicy::CreateUnknown).unwrap();
+        assert_eq!(g.information_spread(), None);
+        let strong = Edge::new(
+            1,
+            2,
+            Pose2::default(),
+            Information::diagonal(1.0, 1.0, 1e20),
+        );
+        g.add_edge(strong.unwrap(), NodePolicy::CreateUnknown)
+            .unwrap();
+        let s = g.information_spread().unwrap();
+        assert_eq!((s.high, s.low), (1, 0));
+        assert!(s.ratio > 1e16);
+    }
+
+    #[test]
+    fn edges_deserialise_validated() {
+        let good = e(3, 4);
+        let text = serde_json::to_string(&good).unwrap();
+        assert_eq!(serde_json::from_str::<Edge>(&text).unwrap(), good);
+        let self_loop = text.replace("\"to\":4", "\"to\":3");
+        let err = serde_json::from_str::<Edge>(&self_loop).unwrap_err();
+        assert!(err.to_string().contains("self-loop"), "{err}");
+    }
+
+    #[cfg(feature = "nalgebra")]
+    #[test]
+    fn isometry_round_trip() {
+        let p = Pose2::new(1.5, -2.0, 0.7);
+        let iso: nalgebra::Isometry2<f64> = p.into();
+        let q = p.compose(Pose2::new(0.3, 0.4, -0.2));
+        let moved = iso * nalgebra::Isometry2::from(Pose2::new(0.3, 0.4, -0.2));
+        let back = Pose2::from(moved);
+        assert!((back.x - q.x).abs() < 1e-12 && (back.y - q.y).abs() < 1e-12);
+        assert!((back.theta - q.theta).abs() < 1e-12);
+        assert_eq!(Pose2::from(iso), p);
     }
 
     #[test]

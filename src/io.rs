@@ -21,19 +21,31 @@
 //! - Unknown tags (landmarks, 3D, `FIX`, …) are skipped and counted per tag; `#` comments
 //!   and blank lines are ignored.
 //! - Every malformed line is a [`ReadError`] with file, line number and what was wrong.
+//! - A line may hold at most [`MAX_LINE_BYTES`] (1 MiB) bytes: a longer one (a binary file, a
+//!   corrupted or hostile file, `/dev/zero`) is [`LineError::TooLong`] after reading at most
+//!   that much, so memory stays bounded whatever the input.
+//! - An MCAP log given as a graph is [`LineError::McapLog`], not a line of garbage.
 //!
 //! [`Reader`] is an iterator of [`Record`]s in file order (how the online estimator and the
 //! `stream` command consume a file); [`read_graph`] collects one into a [`PoseGraph`].
 
 use std::collections::{BTreeMap, VecDeque};
 use std::fs::File;
-use std::io::{BufRead, BufReader, Write};
+use std::io::{BufRead, BufReader, Read, Write};
 use std::path::Path;
 
 use crate::graph::{Edge, GraphError, Information, NodeId, NodePolicy, Pose2, PoseGraph};
 
+/// The longest line a graph file may have, in bytes (1 MiB; the longest line of a valid file
+/// is about 200 bytes).
+pub const MAX_LINE_BYTES: usize = 1 << 20;
+
+/// The 8 bytes every MCAP file starts with (the last one is a newline, so a graph reader sees
+/// them as line 1).
+const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
+
 /// Order of the six information entries on an edge line.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub enum InfoOrder {
     /// Detect from positive definiteness (see the module docs).
     #[default]
@@ -55,7 +67,8 @@ impl InfoOrder {
 }
 
 /// Options for reading a graph file.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct ReadOptions {
     /// Information-matrix order (default: detect).
     pub order: InfoOrder,
@@ -103,6 +116,20 @@ pub enum LineError {
     /// The line is not valid UTF-8.
     #[error("line is not valid UTF-8")]
     NotUtf8,
+    /// The line is longer than [`MAX_LINE_BYTES`].
+    #[error("line is longer than {max} bytes: not a graph file")]
+    TooLong {
+        /// The limit, [`MAX_LINE_BYTES`].
+        max: usize,
+    },
+    /// The file is an MCAP log, not a graph file.
+    #[error(
+        "this is an MCAP log, not a graph file: read it with so2lin::log::read_log (`so2lin replay` or `so2lin plot`)"
+    )]
+    McapLog,
+    /// The path is a directory.
+    #[error("is a directory, not a graph file")]
+    Directory,
     /// Wrong number of fields for the tag.
     #[error("{tag} needs {expected} fields after the tag, found {found}")]
     FieldCount {
@@ -142,9 +169,10 @@ pub enum LineError {
     Graph(#[from] GraphError),
 }
 
-/// A reading error: file, 1-based line number, and what was wrong.
+/// A reading error: file, 1-based line number, and what was wrong. Displayed as
+/// `file:line: what`, or `file: what` for errors not tied to a line.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
-#[error("{file}:{line}: {kind}")]
+#[error("{file}{}: {kind}", if *line > 0 { format!(":{line}") } else { String::new() })]
 pub struct ReadError {
     /// File name (or a label for in-memory input).
     pub file: String,
@@ -157,7 +185,8 @@ pub struct ReadError {
 /// What a whole read found besides the records.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
 pub struct ReadSummary {
-    /// Lines skipped, by tag (unknown tags: landmarks, 3D, …).
+    /// Lines skipped, by tag (unknown tags: landmarks, 3D, …); tags are cut to 40 characters,
+    /// and beyond 256 distinct tags the rest are counted under `(other tags)`.
     pub skipped: BTreeMap<String, usize>,
     /// The information order used for edges (None when the file has no edges).
     pub order: Option<InfoOrder>,
@@ -167,6 +196,10 @@ pub struct ReadSummary {
     pub vertices: usize,
     /// Number of edge lines.
     pub edges: usize,
+    /// The 1-based line of every edge of the graph, by edge index (filled by [`read_graph`]
+    /// and [`read_graph_from`]).
+    #[serde(skip)]
+    pub edge_lines: Vec<usize>,
 }
 
 /// An edge line parsed but not yet interpreted (its information order may be undecided).
@@ -206,16 +239,27 @@ impl Reader<BufReader<File>> {
     /// Open a file for streaming.
     pub fn open(path: impl AsRef<Path>, order: InfoOrder) -> Result<Self, ReadError> {
         let path = path.as_ref();
-        let file = File::open(path).map_err(|e| ReadError {
-            file: path.display().to_string(),
-            line: 0,
-            kind: LineError::Io(e.to_string()),
-        })?;
+        let file = open_file(path)?;
         Ok(Reader::new(
             BufReader::new(file),
             path.display().to_string(),
             order,
         ))
+    }
+}
+
+/// Open a graph file for reading: a directory or a file that cannot be opened is a
+/// [`ReadError`] at line 0.
+pub fn open_file(path: &Path) -> Result<File, ReadError> {
+    let err = |kind| ReadError {
+        file: path.display().to_string(),
+        line: 0,
+        kind,
+    };
+    let file = File::open(path).map_err(|e| err(LineError::Io(e.to_string())))?;
+    match file.metadata() {
+        Ok(m) if m.is_dir() => Err(err(LineError::Directory)),
+        _ => Ok(file),
     }
 }
 
@@ -324,8 +368,27 @@ impl<R: BufRead> Reader<R> {
     /// Read one physical line and queue what it yields. Returns false at end of input.
     fn step(&mut self) -> bool {
         self.buf.clear();
-        match self.src.read_until(b'\n', &mut self.buf) {
+        // Read at most one byte more than a line may hold: memory stays bounded on any input.
+        let limit = MAX_LINE_BYTES as u64 + 1;
+        match (&mut self.src).take(limit).read_until(b'\n', &mut self.buf) {
             Ok(0) => return false,
+            Ok(_) if self.buf.len() > MAX_LINE_BYTES => {
+                self.line += 1;
+                let e = self.err(
+                    self.line,
+                    LineError::TooLong {
+                        max: MAX_LINE_BYTES,
+                    },
+                );
+                self.ready.push_back(Err(e));
+                return true;
+            }
+            Ok(_) if self.line == 0 && self.buf == MCAP_MAGIC => {
+                self.line += 1;
+                let e = self.err(self.line, LineError::McapLog);
+                self.ready.push_back(Err(e));
+                return true;
+            }
             Ok(_) => {}
             Err(e) => {
                 self.line += 1;
@@ -346,7 +409,14 @@ impl<R: BufRead> Reader<R> {
         };
         match parse_line(&text, line) {
             Ok(Parsed::Nothing) => {}
-            Ok(Parsed::Skipped(tag)) => *self.summary.skipped.entry(tag).or_default() += 1,
+            Ok(Parsed::Skipped(tag)) => {
+                // Bounded bookkeeping: tags are cut to 40 characters and at most
+                // MAX_SKIPPED_TAGS distinct tags are listed, the rest counted together.
+                let known = self.summary.skipped.len() < MAX_SKIPPED_TAGS
+                    || self.summary.skipped.contains_key(&tag);
+                let key = if known { tag } else { OTHER_TAGS.to_owned() };
+                *self.summary.skipped.entry(key).or_default() += 1
+            }
             Ok(Parsed::Record(r)) => {
                 match &r {
                     Record::Vertex { .. } => self.summary.vertices += 1,
@@ -430,7 +500,7 @@ fn parse_line(text: &str, line: usize) -> Result<Parsed, LineError> {
             Ok(())
         } else {
             Err(LineError::FieldCount {
-                tag: tag.to_owned(),
+                tag: short(tag),
                 expected,
                 found: rest.len(),
             })
@@ -495,14 +565,27 @@ fn parse_line(text: &str, line: usize) -> Result<Parsed, LineError> {
             let b = parse_id(rest[1], 2)?;
             Ok(Parsed::Record(Record::Equiv { a, b, line }))
         }
-        other => Ok(Parsed::Skipped(other.to_owned())),
+        other => Ok(Parsed::Skipped(short(other))),
+    }
+}
+
+/// At most this many distinct skipped tags are listed in [`ReadSummary::skipped`].
+const MAX_SKIPPED_TAGS: usize = 256;
+/// The key counting skipped lines beyond [`MAX_SKIPPED_TAGS`] distinct tags.
+const OTHER_TAGS: &str = "(other tags)";
+
+/// A field quoted in a message or used as a key: at most 40 characters.
+fn short(text: &str) -> String {
+    match text.char_indices().nth(40) {
+        Some((end, _)) => format!("{}…", &text[..end]),
+        None => text.to_owned(),
     }
 }
 
 fn parse_id(text: &str, field: usize) -> Result<NodeId, LineError> {
     text.parse().map_err(|_| LineError::BadId {
         field,
-        text: text.to_owned(),
+        text: short(text),
     })
 }
 
@@ -510,7 +593,7 @@ fn parse_num(text: &str, field: usize, name: &'static str) -> Result<f64, LineEr
     text.parse().map_err(|_| LineError::BadNumber {
         field,
         name,
-        text: text.to_owned(),
+        text: short(text),
     })
 }
 
@@ -537,15 +620,21 @@ fn collect_graph<R: BufRead>(
     policy: NodePolicy,
 ) -> Result<(PoseGraph, ReadSummary), ReadError> {
     let mut graph = PoseGraph::new();
+    let mut edge_lines = Vec::new();
     while let Some(record) = reader.next() {
         let (result, line) = match record? {
             Record::Vertex { id, pose, line } => (graph.add_node(id, Some(pose)).map(drop), line),
-            Record::Edge { edge, line } => (graph.add_edge(edge, policy).map(drop), line),
+            Record::Edge { edge, line } => {
+                edge_lines.push(line);
+                (graph.add_edge(edge, policy).map(drop), line)
+            }
             Record::Equiv { .. } => continue,
         };
         result.map_err(|e| reader.err(line, e.into()))?;
     }
-    Ok((graph, reader.summary.clone()))
+    let mut summary = reader.summary.clone();
+    summary.edge_lines = edge_lines;
+    Ok((graph, summary))
 }
 
 /// Write a graph in g2o format: one `VERTEX_SE2` per node that has a pose, then every edge

@@ -3,8 +3,8 @@
 //! Linear orientation estimation on SO(2) for planar pose graphs, after Carlone & Censi,
 //! "Linear Estimation on SO(2) for Graph-based SLAM": orientations are a linear problem plus
 //! one integer per cycle of the graph, and those integers are screened with Gaussian
-//! confidence tests. The mathematics is restated in the repository's `METHOD.md` reference;
-//! each module implements one of its concepts:
+//! confidence tests. The mathematics is written out in [`method`] (q, log10|Γ|, the success bound and every
+//! figure the commands print); each module implements one of its concepts:
 //!
 //! - [`graph`]: the pose-graph model, edges with their angle variance σ² = (Ω⁻¹)_θθ;
 //! - [`io`]: g2o / TORO readers (streaming and whole-file) and a g2o writer;
@@ -33,10 +33,14 @@
 
 pub mod batch;
 pub mod cycles;
+pub mod error;
 pub mod estimate;
 pub mod gamma;
 pub mod graph;
 pub mod io;
+#[doc = include_str!("method.md")]
+pub mod method {}
+#[cfg(feature = "mcap")]
 pub mod log;
 pub mod online;
 pub mod refine;
@@ -45,6 +49,7 @@ pub mod sim;
 pub mod tree;
 pub mod wraps;
 
+pub use error::{Error, Result};
 pub use graph::{Edge, GraphError, Information, NodeId, NodePolicy, Pose2, PoseGraph};
 pub use io::{InfoOrder, ReadError, ReadOptions, Reader, Record};
 

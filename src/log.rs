@@ -40,16 +40,18 @@ use crate::screening::ScreeningConfig;
 /// Version of the so2lin channels' message layout.
 pub const SCHEMA_VERSION: &str = "1";
 
-/// Recording options.
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// Recording options. Defaults: a snapshot every 100 steps, a flush at least every 64
+/// steps, and after every loop closure.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct LogOptions {
     /// Snapshot (`/so2lin/estimate`, `/graph`, `/poses`) every this many steps (0: only at
     /// the end). Default 100.
     pub snapshot_every: usize,
-    /// Flush (close the chunk) at least every this many steps.
+    /// Flush (close the chunk) at least every this many steps. Default 64.
     pub flush_every: usize,
     /// Also flush after every loop closure (steps that queue up behind the writer share one
-    /// flush).
+    /// flush). Default true.
     pub flush_on_loop_closure: bool,
 }
 
@@ -74,12 +76,38 @@ pub enum LogError {
         /// The error.
         source: std::io::Error,
     },
-    /// The MCAP layer.
+    /// The MCAP layer failed while writing.
     #[error("MCAP: {0}")]
-    Mcap(#[from] mcap::McapError),
+    Mcap(String),
+    /// The file is damaged: a CRC mismatch, an impossible length, undecodable compressed data,
+    /// or a malformed record or message.
+    #[error("corrupt log near byte {offset}: {what} ({intact_steps} steps before it are intact)")]
+    Corrupt {
+        /// How far reading got, in bytes from the start of the file.
+        offset: u64,
+        /// What was wrong.
+        what: String,
+        /// Complete steps read before the damage.
+        intact_steps: usize,
+    },
     /// Not a so2lin log, or a malformed message.
     #[error("not a valid so2lin log: {0}")]
     Format(String),
+}
+
+#[doc(hidden)]
+impl From<mcap::McapError> for LogError {
+    /// The error and its chain of causes as one message (the `mcap` crate's type stays out of
+    /// the public API).
+    fn from(e: mcap::McapError) -> Self {
+        let mut text = e.to_string();
+        let mut cause = std::error::Error::source(&e);
+        while let Some(c) = cause {
+            text = format!("{text}: {c}");
+            cause = c.source();
+        }
+        LogError::Mcap(text)
+    }
 }
 
 /// Something a recorder can write into.
@@ -141,65 +169,151 @@ impl LogContents {
     }
 }
 
-/// Read a log linearly, tolerating a cut: everything before the first damaged record is
-/// returned, and `truncated` says why reading stopped.
+/// How many times its file size a log's records may expand when decompressed: the bound on
+/// every record and chunk [`read_log`] decompresses (at least [`MIN_RECORD_LIMIT`]). A length
+/// field beyond it is reported as corruption before anything is allocated for it. so2lin's own
+/// logs expand about 4–8× (JSON in zstd level 1).
+pub const MAX_EXPANSION: usize = 64;
+
+/// The smallest record bound, for tiny files: 1 MiB.
+pub const MIN_RECORD_LIMIT: usize = 1 << 20;
+
+/// The bound on any one record or decompressed chunk of a log of `file_len` bytes:
+/// `max(file_len · MAX_EXPANSION, MIN_RECORD_LIMIT)`.
+pub fn record_limit(file_len: usize) -> usize {
+    file_len.saturating_mul(MAX_EXPANSION).max(MIN_RECORD_LIMIT)
+}
+
+/// Read a log linearly, tolerating a cut: everything before the cut is returned, and
+/// `truncated` says why reading stopped.
+///
+/// Every chunk's CRC is checked before any of its records is used, and the data section's CRC
+/// at its end; every record and decompressed chunk is bounded by [`record_limit`] of the
+/// file's length, so a damaged length field is an error, never an allocation. A file that ends
+/// inside a record is a cut ([`LogContents::truncated`]); any other damage (a CRC mismatch, an
+/// impossible length, undecodable compressed data, a malformed record or message) is
+/// [`LogError::Corrupt`], naming where reading stopped and how many steps before it were
+/// intact.
 pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
-    use mcap::read::Options;
-    let mut metadata = None;
-    let mut truncated = None;
+    use mcap::records::Record;
+    use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
+
     if bytes.len() < 8 || &bytes[..8] != mcap::MAGIC {
         return Err(LogError::Format("not an MCAP file (bad magic)".into()));
     }
-    let records =
-        mcap::read::LinearReader::new_with_options(bytes, Options::IgnoreEndMagic.into())?;
-    for r in records {
-        match r {
-            Ok(mcap::records::Record::Metadata(m)) if m.name == "so2lin" => {
-                metadata = Some(m.metadata);
-                break;
-            }
-            Ok(_) => {}
-            Err(_) => break,
-        }
-    }
-    let metadata = metadata.ok_or_else(|| LogError::Format("no so2lin metadata record".into()))?;
+    let options = LinearReaderOptions::default()
+        .with_skip_end_magic(true)
+        .with_prevalidate_chunk_crcs(true)
+        .with_validate_data_section_crc(true)
+        .with_record_length_limit(record_limit(bytes.len()));
+    let mut reader = LinearReader::new_with_options(options);
+    reader
+        .add_decompressor(BoundedZstd::new(bytes.len()))
+        .map_err(LogError::from)?;
+    let mut rest = bytes;
+    let mut metadata = None;
+    let mut topics: BTreeMap<u16, String> = BTreeMap::new();
     let (mut edges, mut steps) = (Vec::new(), Vec::new());
-    let stream = mcap::MessageStream::new_with_options(bytes, Options::IgnoreEndMagic.into())?;
-    for m in stream {
-        let m = match m {
-            Ok(m) => m,
+    let mut truncated = None;
+    // Corruption found while reading: (offset reached, what).
+    let mut corrupt: Option<(usize, String)> = None;
+    while let Some(event) = reader.next_event() {
+        let offset = bytes.len() - rest.len();
+        let record = match event {
+            Ok(LinearReadEvent::ReadRequest(need)) => {
+                let n = need.min(rest.len());
+                reader.insert(n).copy_from_slice(&rest[..n]);
+                reader.notify_read(n);
+                rest = &rest[n..];
+                continue;
+            }
+            // Only the records a so2lin log is read from are parsed, and only once every
+            // length inside them fits the record (the parser would allocate from it).
+            Ok(LinearReadEvent::Record { opcode, .. }) if !PARSED.contains(&opcode) => continue,
+            Ok(LinearReadEvent::Record { opcode, data }) => {
+                match fields_fit(opcode, data)
+                    .and_then(|()| mcap::parse_record(opcode, data).map_err(|e| e.to_string()))
+                {
+                    Ok(r) => r,
+                    Err(e) => {
+                        corrupt = Some((
+                            offset,
+                            format!("malformed record (opcode {opcode:#04x}): {e}"),
+                        ));
+                        break;
+                    }
+                }
+            }
+            Err(mcap::McapError::UnexpectedEof) => {
+                truncated = Some("the file ends inside a record".to_owned());
+                break;
+            }
             Err(e) => {
-                truncated = Some(e.to_string());
+                corrupt = Some((offset, e.to_string()));
                 break;
             }
         };
-        let parse = || -> Result<Value, LogError> {
-            serde_json::from_slice(&m.data).map_err(|e| LogError::Format(e.to_string()))
-        };
-        match m.channel.topic.as_str() {
-            "/so2lin/edge" => {
-                let v = parse()?;
-                edges.push((step_of(&v)?, edge_from_json(&v)?))
+        match record {
+            Record::Metadata(m) if m.name == "so2lin" => {
+                metadata.get_or_insert(m.metadata);
             }
-            "/so2lin/step" => {
-                let v = parse()?;
-                steps.push((step_of(&v)?, v))
+            Record::Channel(c) => {
+                topics.insert(c.id, c.topic);
             }
+            Record::Message { header, data } => {
+                let Some(topic) = topics.get(&header.channel_id) else {
+                    corrupt = Some((
+                        offset,
+                        format!("message on unknown channel {}", header.channel_id),
+                    ));
+                    break;
+                };
+                let parsed = match topic.as_str() {
+                    "/so2lin/edge" => parse_json(&data).and_then(|v| {
+                        edges.push((step_of(&v)?, edge_from_json(&v)?));
+                        Ok(())
+                    }),
+                    "/so2lin/step" => parse_json(&data).and_then(|v| {
+                        steps.push((step_of(&v)?, v));
+                        Ok(())
+                    }),
+                    _ => Ok(()),
+                };
+                if let Err(e) = parsed {
+                    corrupt = Some((offset, format!("{topic} message {}: {e}", header.sequence)));
+                    break;
+                }
+            }
+            Record::DataEnd(_) => break,
             _ => {}
         }
     }
-    if truncated.is_none() && !bytes.ends_with(mcap::MAGIC) {
+    if truncated.is_none() && corrupt.is_none() && !bytes.ends_with(mcap::MAGIC) {
         truncated = Some("the file does not end with the MCAP magic".into());
     }
     // Keep only steps whose edge and outcome were both recorded, in step order.
     edges.sort_by_key(|x| x.0);
     steps.sort_by_key(|x| x.0);
     let n = edges.len().min(steps.len());
-    for (k, ((te, _), (ts, _))) in edges.iter().zip(&steps).take(n).enumerate() {
-        if *te != k as u64 || *ts != k as u64 {
-            return Err(LogError::Format(format!("step {k} is missing")));
-        }
+    let missing = edges
+        .iter()
+        .zip(&steps)
+        .take(n)
+        .enumerate()
+        .find(|(k, ((te, _), (ts, _)))| *te != *k as u64 || *ts != *k as u64)
+        .map(|(k, _)| k);
+    if let Some((offset, what)) = corrupt {
+        let intact = missing.unwrap_or(n);
+        return Err(LogError::Corrupt {
+            offset: offset as u64,
+            what,
+            intact_steps: intact,
+        });
     }
+    if let Some(k) = missing {
+        return Err(LogError::Format(format!("step {k} is missing")));
+    }
+    let metadata = metadata.ok_or_else(|| LogError::Format("no so2lin metadata record".into()))?;
     Ok(LogContents {
         metadata,
         edges: edges.into_iter().take(n).map(|x| x.1).collect(),
@@ -213,6 +327,174 @@ fn step_of(v: &Value) -> Result<u64, LogError> {
     v.get("step")
         .and_then(Value::as_u64)
         .ok_or_else(|| LogError::Format("a message without its step index".into()))
+}
+
+/// zstd chunk decoding whose window (what the decoder allocates, in zstd's own C code, for a
+/// frame) is bounded by [`record_limit`] of the file: mcap's built-in decoder accepts any window
+/// up to 128 MiB that a frame header asks for.
+struct BoundedZstd {
+    stream: Option<zstd::zstd_safe::DStream<'static>>,
+    need: usize,
+    window_log: u32,
+}
+
+impl BoundedZstd {
+    fn new(file_len: usize) -> Self {
+        let limit = record_limit(file_len);
+        // The smallest power of two ≥ the limit, within zstd's range [2^10, 2^27].
+        let window_log = limit.next_power_of_two().trailing_zeros().clamp(10, 27);
+        Self {
+            stream: None,
+            need: 0,
+            window_log,
+        }
+    }
+}
+
+fn zstd_result(r: zstd::zstd_safe::SafeResult) -> Result<usize, mcap::McapError> {
+    r.map_err(|code| {
+        mcap::McapError::DecompressionError(zstd::zstd_safe::get_error_name(code).into())
+    })
+}
+
+impl mcap::sans_io::decompressor::Decompressor for BoundedZstd {
+    fn next_read_size(&self) -> usize {
+        self.need
+    }
+
+    fn decompress(
+        &mut self,
+        src: &[u8],
+        dst: &mut [u8],
+    ) -> Result<mcap::sans_io::decompressor::DecompressResult, mcap::McapError> {
+        use zstd::zstd_safe::{DParameter, DStream, InBuffer, OutBuffer};
+        if self.stream.is_none() {
+            let mut stream = DStream::create();
+            zstd_result(stream.init())?;
+            zstd_result(stream.set_parameter(DParameter::WindowLogMax(self.window_log)))?;
+            self.stream = Some(stream);
+        }
+        let Some(stream) = self.stream.as_mut() else {
+            return Err(mcap::McapError::DecompressionError("no zstd stream".into()));
+        };
+        let mut input = InBuffer::around(src);
+        let mut output = OutBuffer::around(dst);
+        self.need = zstd_result(stream.decompress_stream(&mut output, &mut input))?;
+        Ok(mcap::sans_io::decompressor::DecompressResult {
+            consumed: input.pos,
+            wrote: output.pos(),
+        })
+    }
+
+    fn reset(&mut self) -> Result<(), mcap::McapError> {
+        self.need = 0;
+        if let Some(stream) = self.stream.as_mut() {
+            zstd_result(stream.reset(zstd::zstd_safe::ResetDirective::SessionOnly))?;
+        }
+        Ok(())
+    }
+
+    fn name(&self) -> &'static str {
+        "zstd"
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mcap::sans_io::decompressor::Decompressor;
+
+    fn frame(window_log: u32, data: &[u8]) -> Vec<u8> {
+        let mut enc = zstd::stream::Encoder::new(Vec::new(), 1).unwrap();
+        enc.include_contentsize(false).unwrap();
+        enc.window_log(window_log).unwrap();
+        enc.long_distance_matching(true).unwrap();
+        std::io::Write::write_all(&mut enc, data).unwrap();
+        enc.finish().unwrap()
+    }
+
+    #[test]
+    fn zstd_windows_beyond_the_record_limit_are_refused() {
+        let data = b"so2lin so2lin so2lin so2lin".repeat(100);
+        // A 10 kB file: records up to 1 MiB, window up to 2^20.
+        let mut d = BoundedZstd::new(10_000);
+        assert_eq!(d.window_log, 20);
+        let mut out = vec![0; data.len()];
+        let small = frame(20, &data);
+        let r = d.decompress(&small, &mut out).unwrap();
+        assert_eq!(&out[..r.wrote], &data[..]);
+        // A frame asking for a 128 MiB window is an error before zstd allocates it.
+        d.reset().unwrap();
+        let big = frame(27, &data);
+        let e = d.decompress(&big, &mut out).unwrap_err();
+        assert!(
+            e.to_string().contains("Frame requires too much memory"),
+            "{e}"
+        );
+    }
+}
+
+/// Opcodes of the records [`read_log`] parses: channel, message, metadata, data end.
+const PARSED: [u8; 4] = [0x04, 0x05, 0x0C, 0x0F];
+
+/// Whether every length-prefixed field of a channel or metadata record fits in the record
+/// (the others have no such field).
+fn fields_fit(opcode: u8, data: &[u8]) -> Result<(), String> {
+    struct Cursor<'a>(&'a [u8]);
+    impl Cursor<'_> {
+        fn skip(&mut self, n: usize) -> Result<(), String> {
+            match self.0.get(n..) {
+                Some(rest) => {
+                    self.0 = rest;
+                    Ok(())
+                }
+                None => Err(format!("a field of {n} bytes with {} left", self.0.len())),
+            }
+        }
+        fn len(&mut self) -> Result<usize, String> {
+            let bytes: [u8; 4] = self
+                .0
+                .get(..4)
+                .and_then(|b| b.try_into().ok())
+                .ok_or("a length cut short")?;
+            self.0 = &self.0[4..];
+            Ok(u32::from_le_bytes(bytes) as usize)
+        }
+        fn string(&mut self) -> Result<(), String> {
+            let n = self.len()?;
+            self.skip(n)
+        }
+        fn string_map(&mut self) -> Result<(), String> {
+            let n = self.len()?;
+            let mut inner = Cursor(
+                self.0
+                    .get(..n)
+                    .ok_or_else(|| format!("a map of {n} bytes with {} left", self.0.len()))?,
+            );
+            while !inner.0.is_empty() {
+                inner.string()?;
+                inner.string()?;
+            }
+            self.skip(n)
+        }
+    }
+    let mut c = Cursor(data);
+    let checked = match opcode {
+        // Channel: id, schema id, topic, message encoding, metadata.
+        0x04 => c
+            .skip(4)
+            .and_then(|()| c.string())
+            .and_then(|()| c.string())
+            .and_then(|()| c.string_map()),
+        // Metadata: name, metadata.
+        0x0C => c.string().and_then(|()| c.string_map()),
+        _ => Ok(()),
+    };
+    checked.map_err(|e| format!("record (opcode {opcode:#04x}) claims {e}"))
+}
+
+fn parse_json(data: &[u8]) -> Result<Value, LogError> {
+    serde_json::from_slice(data).map_err(|e| LogError::Format(e.to_string()))
 }
 
 fn edge_from_json(v: &Value) -> Result<Edge, LogError> {

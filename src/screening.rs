@@ -1,4 +1,4 @@
-//! Screening the cycle integers γ (METHOD.md §3, §4, §8).
+//! Screening the cycle integers γ (method [§3](crate::method#3-first-screening), [§4](crate::method#4-second-screening), [§8](crate::method#8-success-probability)).
 //!
 //! **First screening** (per cycle): with `q = sqrt(χ²_d⁻¹(1 − α'))`, the candidates of γ_i are
 //! the integers in `[m_i − q s_i, m_i + q s_i]`, where `(m_i, s_i²)` are the mean and variance of
@@ -25,7 +25,8 @@ use std::time::Instant;
 use crate::gamma::{Conditioner, GammaModel, Moments, SingularError};
 
 /// Screening settings.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct ScreeningConfig {
     /// Significance level α.
     pub alpha: f64,
@@ -75,6 +76,14 @@ impl ScreeningConfig {
         }
         if self.dof == 0 {
             return Err(ConfigError("dof must be ≥ 1".into()));
+        }
+        // 1 − α must differ from 1 in double precision, or q is infinite and every box spans
+        // all integers.
+        if 1.0 - self.alpha == 1.0 || !self.quantile(1).is_finite() {
+            return Err(ConfigError(format!(
+                "alpha = {:e} is too small: 1 − α rounds to 1 in double precision (use α ≥ 1e-15)",
+                self.alpha
+            )));
         }
         if self.max_hypotheses == 0 {
             return Err(ConfigError("max_hypotheses must be ≥ 1".into()));
@@ -141,11 +150,12 @@ pub struct Interval {
 }
 
 impl Interval {
-    /// Candidates of a cycle with conditional moments `m` and half-width factor `q`.
+    /// Candidates of a cycle with conditional moments `m` and half-width factor `q`, within
+    /// ±[`MAX_CANDIDATE`] (beyond it f64 does not resolve integers).
     pub fn new(m: Moments, q: f64) -> Self {
         let half = q * m.sd();
-        let lo = (m.mean - half).ceil();
-        let hi = (m.mean + half).floor();
+        let lo = (m.mean - half).ceil().max(-MAX_CANDIDATE as f64);
+        let hi = (m.mean + half).floor().min(MAX_CANDIDATE as f64);
         if lo <= hi {
             Self {
                 lo: lo as i64,
@@ -153,7 +163,7 @@ impl Interval {
                 inconsistent: false,
             }
         } else {
-            let f = m.mean.floor() as i64;
+            let f = (m.mean.floor() as i64).clamp(-MAX_CANDIDATE, MAX_CANDIDATE - 1);
             Self {
                 lo: f,
                 hi: f + 1,
@@ -164,7 +174,7 @@ impl Interval {
 
     /// Number of candidates.
     pub fn count(&self) -> u64 {
-        self.hi.abs_diff(self.lo) + 1
+        self.hi.abs_diff(self.lo).saturating_add(1)
     }
 
     /// The single candidate, if there is exactly one (never for an inconsistent cycle).
@@ -191,15 +201,37 @@ pub fn success_lower_bound(sds: impl IntoIterator<Item = f64>) -> f64 {
         .exp()
 }
 
+/// The largest |γ| candidate: 2⁵³, beyond which f64 does not resolve integers.
+pub const MAX_CANDIDATE: i64 = 1 << 53;
+
+/// Memory the second screening may use for the vectors it enumerates: 256 MiB. A vector of k
+/// coordinates costs `8k + 32` bytes, so the effective cap is
+/// `min(max_hypotheses, MAX_ENUMERATION_BYTES / (8k + 32))`.
+pub const MAX_ENUMERATION_BYTES: usize = 256 << 20;
+
+/// Which bound stopped an enumeration.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Limit {
+    /// [`ScreeningConfig::max_hypotheses`] vectors were found.
+    Hypotheses,
+    /// The search visited `64 · cap` partial vectors.
+    Visits,
+    /// The vectors found would exceed [`MAX_ENUMERATION_BYTES`].
+    Memory,
+}
+
 /// Why enumeration stopped early.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
 pub struct TooMany {
-    /// Vectors found before stopping (`cap` unless the search budget ran out first).
+    /// Vectors found before stopping.
     pub found: usize,
     /// The cap.
     pub cap: usize,
     /// Partial vectors visited by the search (its budget is `64 · cap`).
     pub visited: usize,
+    /// The bound that stopped it.
+    pub limit: Limit,
 }
 
 /// `Q = L D Lᵀ` of a dense symmetric matrix (row-major), L unit lower triangular.
@@ -287,12 +319,24 @@ impl JointGaussian {
 
     /// All integer vectors `v` with `v_i ∈ boxes[i]` and `(v − m)ᵀ Q⁻¹ (v − m) ≤ r2`, each with
     /// its quadratic form, in the caller's coordinate order. Stops with [`TooMany`] at `cap`
-    /// vectors, or when the search has visited `64 · cap` partial vectors.
+    /// vectors, when the search has visited `64 · cap` partial vectors, or when the vectors
+    /// found would take more than [`MAX_ENUMERATION_BYTES`].
     pub fn enumerate(
         &self,
         boxes: &[Interval],
         r2: f64,
         cap: usize,
+    ) -> Result<Vec<(Vec<i64>, f64)>, TooMany> {
+        self.enumerate_within(boxes, r2, cap, MAX_ENUMERATION_BYTES)
+    }
+
+    /// [`enumerate`](Self::enumerate) with the memory bound `max_bytes`.
+    fn enumerate_within(
+        &self,
+        boxes: &[Interval],
+        r2: f64,
+        cap: usize,
+        max_bytes: usize,
     ) -> Result<Vec<(Vec<i64>, f64)>, TooMany> {
         let k = self.mean.len();
         let mut out = Vec::new();
@@ -301,6 +345,7 @@ impl JointGaussian {
             return Ok(out);
         }
         let budget = cap.saturating_mul(64);
+        let memory_cap = (max_bytes / (8 * k + 32)).max(1);
         let mut visits = 0usize;
         let mut cur = vec![0i64; k];
         let mut hi = vec![0i64; k];
@@ -335,6 +380,7 @@ impl JointGaussian {
                     found: out.len(),
                     cap,
                     visited: visits,
+                    limit: Limit::Visits,
                 });
             }
             e[lv] = cur[lv] as f64 - center[lv];
@@ -349,11 +395,16 @@ impl JointGaussian {
                     v[self.order[p]] = x;
                 }
                 out.push((v, partial[k]));
-                if out.len() >= cap {
+                if out.len() >= cap.min(memory_cap) {
                     return Err(TooMany {
                         found: out.len(),
                         cap,
                         visited: visits,
+                        limit: if out.len() >= cap {
+                            Limit::Hypotheses
+                        } else {
+                            Limit::Memory
+                        },
                     });
                 }
                 cur[lv] += 1;
@@ -583,7 +634,7 @@ impl Screener {
             .sum()
     }
 
-    /// First screening iterated to its fixed point (METHOD.md §3): every undetermined cycle is
+    /// First screening iterated to its fixed point (method [§3](crate::method#3-first-screening)): every undetermined cycle is
     /// tested conditioned on the determined set; the newly determined are appended in a
     /// fill-reducing order; repeat until nothing changes. Appends its rows to `rows`.
     pub fn first_screening(
@@ -623,7 +674,7 @@ impl Screener {
         }
     }
 
-    /// Second screening iterated (METHOD.md §4), then the hypotheses, their χ² and the
+    /// Second screening iterated (method [§4](crate::method#4-second-screening)), then the hypotheses, their χ² and the
     /// success-rate bound. `first` are the first-screening rows already run.
     pub fn finish(
         &mut self,
@@ -864,6 +915,75 @@ mod tests {
             Err(TooMany {
                 found: 5,
                 cap: 5,
+                ..
+            })
+        ));
+    }
+
+    #[test]
+    fn levels_the_arithmetic_cannot_hold_are_rejected() {
+        for alpha in [1e-17, 1e-300, f64::MIN_POSITIVE] {
+            let c = ScreeningConfig {
+                alpha,
+                ..ScreeningConfig::default()
+            };
+            let e = c.validate().unwrap_err();
+            assert!(e.0.contains("too small"), "{e}");
+        }
+        let c = ScreeningConfig {
+            alpha: 1e-15,
+            ..ScreeningConfig::default()
+        };
+        assert!(c.validate().is_ok() && c.quantile(1).is_finite());
+    }
+
+    #[test]
+    fn huge_intervals_stay_in_range() {
+        let m = Moments {
+            mean: 3.0,
+            var: 1e300,
+        };
+        for q in [1.0, f64::INFINITY] {
+            let iv = Interval::new(m, q);
+            assert_eq!((iv.lo, iv.hi), (-MAX_CANDIDATE, MAX_CANDIDATE));
+            assert_eq!(iv.count(), (1u64 << 54) + 1);
+        }
+        let far = Interval::new(
+            Moments {
+                mean: 1e300,
+                var: 1e-6,
+            },
+            1.0,
+        );
+        assert!(far.hi <= MAX_CANDIDATE && far.lo < far.hi);
+    }
+
+    #[test]
+    fn enumeration_memory_is_bounded() {
+        let k = 50;
+        let mut q = vec![0.0; k * k];
+        for i in 0..k {
+            q[i * k + i] = 1.0;
+        }
+        let jg = JointGaussian::new(&vec![0.5; k], &q).unwrap();
+        let boxes = vec![
+            Interval {
+                lo: 0,
+                hi: 1,
+                inconsistent: false
+            };
+            k
+        ];
+        let per_vector = 8 * k + 32;
+        let r = jg.enumerate_within(&boxes, 1e9, 1_000_000, 10 * per_vector);
+        let Err(t) = r else { panic!("not capped") };
+        assert_eq!((t.found, t.limit), (10, Limit::Memory));
+        let r = jg.enumerate_within(&boxes, 1e9, 5, 10 * per_vector);
+        assert!(matches!(
+            r,
+            Err(TooMany {
+                found: 5,
+                limit: Limit::Hypotheses,
                 ..
             })
         ));

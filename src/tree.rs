@@ -1,4 +1,4 @@
-//! Spanning trees and forests (METHOD.md §5–§6).
+//! Spanning trees and forests (method [§5](crate::method#5-wraps-and-orientations)–[§6](crate::method#6-which-cycle-basis)).
 //!
 //! A spanning tree `T` splits the edges into `n − c` tree edges and `ℓ = m − n + c` chords;
 //! each chord closes one fundamental cycle (the chord plus the tree path between its ends).

@@ -1,4 +1,4 @@
-//! From cycle integers γ to edge wraps k (METHOD.md §5).
+//! From cycle integers γ to edge wraps k (method [§5](crate::method#5-wraps-and-orientations)).
 //!
 //! Order the edges as tree edges then chords, `C = [C_T C_L]`; then `k = [0; C_L⁻¹ γ]` solves
 //! `C k = γ`, and every solution gives the same orientations modulo 2π (paper Prop. 1).
@@ -35,8 +35,8 @@ pub enum WrapError {
         /// A cycle of the dependent set.
         cycle: usize,
     },
-    /// The exact elimination overflowed 64-bit integers.
-    #[error("integer overflow in the exact elimination of the cycle matrix")]
+    /// The exact elimination, or the wraps of a γ, overflowed 64-bit integers.
+    #[error("integer overflow computing wraps (64-bit integers)")]
     Overflow,
     /// γ has no integer k (the basis is not integral).
     #[error("C k = γ has no integer solution (cycle {cycle}): the basis is not integral")]
@@ -188,28 +188,43 @@ impl WrapSolver {
         let mut k = vec![0i64; self.edges];
         let Some(general) = &self.general else {
             for (c, &g) in cycles.iter().zip(gamma) {
-                let rest: i64 = c.terms[1..]
-                    .iter()
-                    .map(|t| i64::from(t.sign) * k[t.edge as usize])
-                    .sum();
-                k[c.chord() as usize] = g - rest;
+                let rest = signed_sum(c.terms[1..].iter(), &k)?;
+                k[c.chord() as usize] = g.checked_sub(rest).ok_or(WrapError::Overflow)?;
             }
             return Ok(k);
         };
         general.core.solve(gamma, &mut k)?;
         for d in &general.peeled {
             let c = &cycles[d.cycle as usize];
-            let rest: i64 = c
-                .terms
-                .iter()
-                .filter(|t| t.edge != d.edge)
-                .map(|t| i64::from(t.sign) * k[t.edge as usize])
-                .sum();
+            let rest = signed_sum(c.terms.iter().filter(|t| t.edge != d.edge), &k)?;
             // sign = ±1, so dividing is multiplying.
-            k[d.edge as usize] = i64::from(d.sign) * (gamma[d.cycle as usize] - rest);
+            let v = gamma[d.cycle as usize]
+                .checked_sub(rest)
+                .ok_or(WrapError::Overflow)?;
+            k[d.edge as usize] = if d.sign < 0 {
+                v.checked_neg().ok_or(WrapError::Overflow)?
+            } else {
+                v
+            };
         }
         Ok(k)
     }
+}
+
+/// `Σ ±k_e` over `terms`, checked for overflow.
+fn signed_sum<'a>(
+    mut terms: impl Iterator<Item = &'a crate::cycles::SignedEdge>,
+    k: &[i64],
+) -> Result<i64, WrapError> {
+    terms.try_fold(0i64, |acc, t| {
+        let x = k[t.edge as usize];
+        if t.sign < 0 {
+            acc.checked_sub(x)
+        } else {
+            acc.checked_add(x)
+        }
+        .ok_or(WrapError::Overflow)
+    })
 }
 
 /// `γ = C k`.

@@ -100,6 +100,10 @@ fn marginal_variance_matches_dense_inverse() {
 }
 
 #[test]
+#[cfg_attr(
+    so2lin_no_datasets,
+    ignore = "benchmark datasets not found (set SO2LIN_DATASETS)"
+)]
 fn gtsam_lago_toy_graph_orientations() {
     let Some(path) = common::dataset("noisyToyGraph.txt") else {
         return;
@@ -120,6 +124,10 @@ fn gtsam_lago_toy_graph_orientations() {
 }
 
 #[test]
+#[cfg_attr(
+    so2lin_no_datasets,
+    ignore = "benchmark datasets not found (set SO2LIN_DATASETS)"
+)]
 fn m3500_paper_preset_reproduces_the_mcb_row() {
     let Some(path) = common::dataset("M3500.g2o") else {
         return;
@@ -142,6 +150,10 @@ fn m3500_paper_preset_reproduces_the_mcb_row() {
 }
 
 #[test]
+#[cfg_attr(
+    so2lin_no_datasets,
+    ignore = "benchmark datasets not found (set SO2LIN_DATASETS)"
+)]
 fn paper_datasets_all_bases_finish() {
     // (file, hypotheses expected with the incremental basis; the paper's MCB outcome)
     let cases = [

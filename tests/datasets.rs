@@ -47,6 +47,10 @@ const COUNTS: [Row; 19] = [
 ];
 
 #[test]
+#[cfg_attr(
+    so2lin_no_datasets,
+    ignore = "benchmark datasets not found (set SO2LIN_DATASETS)"
+)]
 fn counts_match_sources_md() {
     if common::datasets_dir().is_none() {
         return;
@@ -87,6 +91,10 @@ fn sigma2_all(name: &str) -> Option<Vec<f64>> {
 }
 
 #[test]
+#[cfg_attr(
+    so2lin_no_datasets,
+    ignore = "benchmark datasets not found (set SO2LIN_DATASETS)"
+)]
 fn m3500_noisy_variants_angle_variance() {
     for (name, itt, order) in [
         ("M3500a.g2o", 30.90, InfoOrder::Toro),
@@ -116,6 +124,10 @@ fn m3500_noisy_variants_angle_variance() {
 }
 
 #[test]
+#[cfg_attr(
+    so2lin_no_datasets,
+    ignore = "benchmark datasets not found (set SO2LIN_DATASETS)"
+)]
 fn w20000_is_edge2_in_g2o_order() {
     let Some(path) = common::dataset("w20000.txt") else {
         return;
@@ -140,6 +152,10 @@ fn w20000_is_edge2_in_g2o_order() {
 }
 
 #[test]
+#[cfg_attr(
+    so2lin_no_datasets,
+    ignore = "benchmark datasets not found (set SO2LIN_DATASETS)"
+)]
 fn frh_denormals_read_as_zero_and_olson_angles_kept() {
     if let Some(s2) = sigma2_all("FRH.g2o") {
         assert!(s2.iter().all(|v| v.is_finite() && *v > 0.0));
@@ -159,6 +175,10 @@ fn frh_denormals_read_as_zero_and_olson_angles_kept() {
 }
 
 #[test]
+#[cfg_attr(
+    so2lin_no_datasets,
+    ignore = "benchmark datasets not found (set SO2LIN_DATASETS)"
+)]
 fn mit_reversed_edges_keep_direction() {
     let Some(path) = common::dataset("MIT.g2o") else {
         return;
@@ -166,4 +186,21 @@ fn mit_reversed_edges_keep_direction() {
     let (g, _) = read_graph(&path, ReadOptions::default()).unwrap();
     let reversed = g.edges().iter().filter(|e| e.from() > e.to()).count();
     assert_eq!(reversed, 20);
+}
+
+/// With `SO2LIN_REQUIRE_DATASETS=1` a build without the datasets fails here, with the reason;
+/// otherwise their tests are reported as ignored (see `build.rs`).
+#[test]
+fn datasets_are_present_when_required() {
+    let required = std::env::var("SO2LIN_REQUIRE_DATASETS").is_ok_and(|v| v == "1");
+    let built_without = cfg!(so2lin_no_datasets);
+    if required && built_without {
+        panic!(
+            "SO2LIN_REQUIRE_DATASETS=1 but the datasets were not found when the tests were built \
+             (set SO2LIN_DATASETS to their folder)"
+        );
+    }
+    if required {
+        assert!(common::datasets_dir().is_some());
+    }
 }

@@ -3,7 +3,6 @@
 mod common;
 
 use std::io::{Cursor, Seek, SeekFrom, Write};
-use std::sync::{Arc, Mutex};
 
 use so2lin::graph::Edge;
 use so2lin::io::{InfoOrder, Reader};
@@ -11,31 +10,7 @@ use so2lin::log::{LogOptions, Recorder, read_log, replay};
 use so2lin::online::{OnlineConfig, OnlineEstimator, StepKind};
 use so2lin::sim::{SimConfig, simulate};
 
-/// A sink whose bytes the test can look at while the recorder still owns it.
-#[derive(Clone, Default)]
-struct Shared(Arc<Mutex<Cursor<Vec<u8>>>>);
-
-impl Write for Shared {
-    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-        self.0.lock().unwrap().write(buf)
-    }
-    fn flush(&mut self) -> std::io::Result<()> {
-        Ok(())
-    }
-}
-impl Seek for Shared {
-    fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
-        self.0.lock().unwrap().seek(pos)
-    }
-}
-impl Shared {
-    fn len(&self) -> usize {
-        self.0.lock().unwrap().get_ref().len()
-    }
-    fn bytes(&self) -> Vec<u8> {
-        self.0.lock().unwrap().get_ref().clone()
-    }
-}
+use common::SharedSink as Shared;
 
 /// Record a run; returns the log bytes and, for every step the documented flush policy
 /// flushes (every loop closure, and at least every `flush_every` steps), the sink length

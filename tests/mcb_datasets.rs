@@ -13,6 +13,10 @@ use so2lin::screening::ScreeningConfig;
 use so2lin::wraps::gamma_of;
 
 #[test]
+#[cfg_attr(
+    so2lin_no_datasets,
+    ignore = "benchmark datasets not found (set SO2LIN_DATASETS)"
+)]
 fn mcb_is_lightest_and_approximation_within_bound_on_every_dataset() {
     let Some((dir, names)) = common::dataset_names() else {
         return;
@@ -77,6 +81,10 @@ fn mcb_is_lightest_and_approximation_within_bound_on_every_dataset() {
 }
 
 #[test]
+#[cfg_attr(
+    so2lin_no_datasets,
+    ignore = "benchmark datasets not found (set SO2LIN_DATASETS)"
+)]
 fn screening_m3500b_and_m3500c_with_the_mcb() {
     // The paper (Table IV, MCB): one hypothesis on M3500b, two on M3500c.
     for (name, want) in [("M3500b.g2o", 1), ("M3500c.g2o", 2)] {

@@ -69,6 +69,10 @@ fn compare(name: &str, graph: &PoseGraph, edges: &[Edge], cfg: ScreeningConfig) 
 }
 
 #[test]
+#[cfg_attr(
+    so2lin_no_datasets,
+    ignore = "benchmark datasets not found (set SO2LIN_DATASETS)"
+)]
 fn datasets_stream_to_the_batch_answer() {
     let Some((dir, names)) = common::dataset_names() else {
         return;

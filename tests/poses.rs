@@ -101,6 +101,10 @@ fn refined_poses_are_within_the_noise_and_never_worse_than_from_odometry() {
 /// The paper's experiment: on the noisy Manhattan worlds, refinement from our linear start
 /// ends far below the same refinement from dead reckoning (stuck in a local minimum).
 #[test]
+#[cfg_attr(
+    so2lin_no_datasets,
+    ignore = "benchmark datasets not found (set SO2LIN_DATASETS)"
+)]
 fn noisy_manhattan_worlds_escape_the_odometry_local_minimum() {
     let refine = RefineConfig {
         iterations: 20,

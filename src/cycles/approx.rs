@@ -1,6 +1,6 @@
 //! The (2k−1)-approximate minimum cycle basis of Kavitha, Mehlhorn and Michail
 //! ("New approximation algorithms for minimum cycle bases of graphs", STACS 2007 /
-//! Algorithmica 2011); with k = 2 it is the paper's MCB_a (METHOD.md §6).
+//! Algorithmica 2011); with k = 2 it is the paper's MCB_a (method [§6](crate::method#6-which-cycle-basis)).
 //!
 //! After the same reduction as the exact MCB (blocks, contracted chains; `reduce`),
 //! in each block:

@@ -1,5 +1,5 @@
 //! Integrality of a cycle basis: `|det C_L|` exactly, and an exact integer solver for
-//! `C k = γ` (METHOD.md §5), used by [`crate::wraps::WrapSolver`].
+//! `C k = γ` (method [§5](crate::method#5-wraps-and-orientations)), used by [`crate::wraps::WrapSolver`].
 //!
 //! **Invariance.** `C = Z F_T` for any spanning tree T, with `F_T` the fundamental basis of T
 //! (a network matrix, totally unimodular) and `Z` integral, so by Cauchy–Binet every nonzero
@@ -322,12 +322,13 @@ impl IntegerLu {
                     acc = ck(acc.checked_sub(ck(v.checked_mul(k[col as usize]))?))?;
                 }
             }
-            if pv == 0 || acc % pv != 0 {
+            // i64::MIN / −1 overflows: checked.
+            if pv == 0 || ck(acc.checked_rem(pv))? != 0 {
                 return Err(IntegerError::Fractional {
                     cycle: self.cycle[r as usize] as usize,
                 });
             }
-            k[c as usize] = acc / pv;
+            k[c as usize] = ck(acc.checked_div(pv))?;
         }
         Ok(())
     }

@@ -1,5 +1,5 @@
 //! Exact minimum cycle basis (MCB) of an undirected multigraph with positive edge weights
-//! (METHOD.md §6: with weights σ², the MCB minimises `tr P_γ`).
+//! (method [§6](crate::method#6-which-cycle-basis): with weights σ², the MCB minimises `tr P_γ`).
 //!
 //! **Reduction.** The graph is split into biconnected blocks and every chain of degree-2
 //! nodes is contracted into one edge (`reduce`); a block that is a single cycle is

@@ -1,4 +1,4 @@
-//! Cycle bases (METHOD.md §2, §6, §7).
+//! Cycle bases (method [§2](crate::method#2-cycles), [§6](crate::method#6-which-cycle-basis), [§7](crate::method#7-online-estimation)).
 //!
 //! A cycle is a signed edge list: `+1` for an edge traversed along its direction, `−1` against
 //! it. The rows of the basis matrix `C ∈ Z^{ℓ×m}` are the cycles, and every row satisfies
@@ -113,7 +113,8 @@ impl Cycle {
 }
 
 /// Which basis.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum BasisKind {
     /// Fundamental basis of the odometric tree `T_o`.
@@ -304,7 +305,7 @@ impl CycleBasis {
     }
 }
 
-/// The incremental cycle basis, grown one edge at a time (METHOD.md §7).
+/// The incremental cycle basis, grown one edge at a time (method [§7](crate::method#7-online-estimation)).
 ///
 /// The path is found by the shared Dijkstra search (module `dijkstra`) from one end, stopped when the other
 /// end is settled, on the graph as it has grown so far.

@@ -1,7 +1,39 @@
 //! Shared helpers for integration tests: locating the benchmark datasets.
 #![allow(dead_code)]
 
+use std::io::{Cursor, Seek, SeekFrom, Write};
 use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+
+/// An in-memory log sink whose bytes a test can read while a recorder still owns a clone.
+#[derive(Clone, Default)]
+pub struct SharedSink(Arc<Mutex<Cursor<Vec<u8>>>>);
+
+impl Write for SharedSink {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.0.lock().unwrap().write(buf)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+impl Seek for SharedSink {
+    fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+        self.0.lock().unwrap().seek(pos)
+    }
+}
+
+impl SharedSink {
+    /// Bytes written so far.
+    pub fn len(&self) -> usize {
+        self.0.lock().unwrap().get_ref().len()
+    }
+    /// A copy of the bytes written so far.
+    pub fn bytes(&self) -> Vec<u8> {
+        self.0.lock().unwrap().get_ref().clone()
+    }
+}
 
 /// The datasets folder: `$SO2LIN_DATASETS`, else `../shared/datasets` beside the repository.
 ///

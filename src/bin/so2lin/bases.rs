@@ -71,6 +71,7 @@ pub fn run(args: BasesArgs) -> Result<(), String> {
     let rows: Vec<Row> = KINDS
         .iter()
         .map(|&kind| {
+            let bar = crate::phase(format!("building the {} basis", crate::basis_name(kind)));
             let start = Instant::now();
             let deadline = args.max_seconds.map(|s| start + Duration::from_secs_f64(s));
             let built = match kind {
@@ -104,6 +105,7 @@ pub fn run(args: BasesArgs) -> Result<(), String> {
                     })
                 }
             };
+            bar.finish_and_clear();
             Row { kind, outcome }
         })
         .collect();

@@ -55,10 +55,10 @@ impl From<OrderArg> for InfoOrder {
 /// Screening options shared by `screen` and `stream`.
 #[derive(clap::Args)]
 struct ScreeningArgs {
-    /// Significance level α.
-    #[arg(long)]
+    /// Significance level α, in (0, 1) [default: 0.01, also with --paper].
+    #[arg(long, allow_hyphen_values = true, value_parser = parse_alpha)]
     alpha: Option<f64>,
-    /// Degrees of freedom of the per-cycle χ² quantile (default 1).
+    /// Degrees of freedom of the per-cycle χ² quantile [default: 1; 3 with --paper].
     #[arg(long)]
     dof: Option<u32>,
     /// The paper's setting: α = 0.01, 3 degrees of freedom (explicit --alpha/--dof win).
@@ -284,8 +284,9 @@ enum Command {
         /// Angle noise standard deviation (radians).
         #[arg(long)]
         sigma_theta: Option<f64>,
-        /// Where to write the MCAP log of the online run (default: so2lin-demo.mcap in the
-        /// system's temporary directory).
+        /// Where to write the MCAP log of the online run; the trajectory plot goes next to it
+        /// (.svg) [default: so2lin-demo-<poses>-<seed>.mcap in the system's temporary
+        /// directory, so demos of other worlds do not overwrite each other].
         #[arg(long)]
         log: Option<PathBuf>,
     },
@@ -294,7 +295,48 @@ enum Command {
 /// A one-line error for the user.
 type CliResult = Result<(), String>;
 
+/// `--alpha`: a level the screening arithmetic can represent ([`ScreeningConfig::validate`]).
+fn parse_alpha(text: &str) -> Result<f64, String> {
+    let alpha: f64 = text
+        .parse()
+        .map_err(|_| format!("{text:?} is not a number"))?;
+    let config = ScreeningConfig {
+        alpha,
+        ..ScreeningConfig::default()
+    };
+    config.validate().map_err(|e| e.0)?;
+    Ok(alpha)
+}
+
+/// Exit status when stdout is a closed pipe: 128 + SIGPIPE, what a shell reports for a
+/// process killed by a broken pipe (`cat file | head -c 1`).
+const BROKEN_PIPE_STATUS: i32 = 141;
+
+/// `println!` panics when stdout fails. Turn that panic into the conventional exits: quietly
+/// with [`BROKEN_PIPE_STATUS`] on a closed pipe, with a one-line error and status 1 on any
+/// other failure (a full disk); every other panic keeps Rust's report.
+fn handle_stdout_failures() {
+    let default = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let message = info
+            .payload()
+            .downcast_ref::<String>()
+            .map(String::as_str)
+            .or_else(|| info.payload().downcast_ref::<&str>().copied())
+            .unwrap_or("");
+        if let Some(why) = message.strip_prefix("failed printing to stdout: ") {
+            if why.contains("Broken pipe") {
+                std::process::exit(BROKEN_PIPE_STATUS);
+            }
+            eprintln!("error: writing to stdout: {why}");
+            std::process::exit(1);
+        }
+        default(info);
+    }));
+}
+
 fn main() -> ExitCode {
+    handle_stdout_failures();
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Info { file, order, json } => info(&file, order.into(), json),
@@ -369,21 +411,25 @@ fn main() -> ExitCode {
             screening,
             refine,
             order,
-        } => plot::run(plot::PlotArgs {
-            input: &input,
-            out: &out,
-            order: order.into(),
-            config: BatchConfig {
-                basis,
-                screening: screening.config(false),
-            },
-            refine: so2lin::refine::RefineConfig {
-                iterations: refine,
-                ..Default::default()
-            },
-            all_hypotheses,
-            size: (width, height),
-        }),
+        } => explained(
+            &input.clone(),
+            order.into(),
+            plot::run(plot::PlotArgs {
+                input: &input,
+                out: &out,
+                order: order.into(),
+                config: BatchConfig {
+                    basis,
+                    screening: screening.config(false),
+                },
+                refine: so2lin::refine::RefineConfig {
+                    iterations: refine,
+                    ..Default::default()
+                },
+                all_hypotheses,
+                size: (width, height),
+            }),
+        ),
         Command::Solve {
             batch,
             refine,
@@ -392,19 +438,23 @@ fn main() -> ExitCode {
             odometry,
             out,
             json,
-        } => solve::run(solve::SolveArgs {
-            file: &batch.file,
-            order: batch.order.into(),
-            config: batch.config(),
-            refine: so2lin::refine::RefineConfig {
-                iterations: refine,
-                relative_decrease: tolerance,
-            },
-            all_hypotheses,
-            odometry,
-            out: out.as_deref(),
-            json,
-        }),
+        } => explained(
+            &batch.file.clone(),
+            batch.order.into(),
+            solve::run(solve::SolveArgs {
+                file: &batch.file,
+                order: batch.order.into(),
+                config: batch.config(),
+                refine: so2lin::refine::RefineConfig {
+                    iterations: refine,
+                    relative_decrease: tolerance,
+                },
+                all_hypotheses,
+                odometry,
+                out: out.as_deref(),
+                json,
+            }),
+        ),
         Command::Bases {
             file,
             max_seconds,
@@ -422,13 +472,17 @@ fn main() -> ExitCode {
             batch,
             orientations,
             json,
-        } => screen::run(screen::ScreenArgs {
-            file: &batch.file,
-            order: batch.order.into(),
-            config: batch.config(),
-            orientations: orientations.as_deref(),
-            json,
-        }),
+        } => explained(
+            &batch.file,
+            batch.order.into(),
+            screen::run(screen::ScreenArgs {
+                file: &batch.file,
+                order: batch.order.into(),
+                config: batch.config(),
+                orientations: orientations.as_deref(),
+                json,
+            }),
+        ),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -439,22 +493,56 @@ fn main() -> ExitCode {
     }
 }
 
-/// A byte-progress bar on a terminal, hidden otherwise.
+/// A byte-progress bar with rate and ETA on a terminal, hidden otherwise (stderr redirected).
 pub(crate) fn progress_bar(len: u64, what: &str) -> ProgressBar {
     if !std::io::stderr().is_terminal() {
         return ProgressBar::hidden();
     }
     let bar = ProgressBar::new(len);
-    if let Ok(style) = ProgressStyle::with_template("{msg} [{bar:30}] {bytes}/{total_bytes}") {
+    let template = "{msg} [{bar:30}] {bytes}/{total_bytes} ({bytes_per_sec}, ETA {eta})";
+    if let Ok(style) = ProgressStyle::with_template(template) {
         bar.set_style(style);
     }
     bar.set_message(what.to_owned());
     bar
 }
 
-/// Read a graph file, with a progress bar on a terminal.
+/// A phase of unknown length (screening, estimating, refining, plotting) shown as a spinner
+/// with its elapsed time on a terminal, hidden otherwise; clear it with `finish_and_clear`.
+pub(crate) fn phase(what: String) -> ProgressBar {
+    if !std::io::stderr().is_terminal() {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new_spinner();
+    if let Ok(style) = ProgressStyle::with_template("{spinner} {msg} ({elapsed})") {
+        bar.set_style(style);
+    }
+    bar.set_message(what);
+    bar.enable_steady_tick(std::time::Duration::from_millis(100));
+    bar
+}
+
+/// `f` run as a [`phase`] named `what`.
+pub(crate) fn in_phase<T>(what: impl Into<String>, f: impl FnOnce() -> T) -> T {
+    let bar = phase(what.into());
+    let out = f();
+    bar.finish_and_clear();
+    out
+}
+
+/// Read a graph file, with a progress bar on a terminal. Skipped lines are reported on stderr
+/// by tag; a file without a single 2D pose edge is an error.
 pub(crate) fn load(path: &Path, order: InfoOrder) -> Result<(PoseGraph, ReadSummary), String> {
-    let file = File::open(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    load_reporting(path, order, true)
+}
+
+/// [`load`], with skipped lines reported on stderr or not (`info` lists them itself).
+fn load_reporting(
+    path: &Path,
+    order: InfoOrder,
+    report_skipped: bool,
+) -> Result<(PoseGraph, ReadSummary), String> {
+    let file = io::open_file(path).map_err(|e| e.to_string())?;
     let len = file.metadata().map(|m| m.len()).unwrap_or(0);
     let bar = progress_bar(len, "reading");
     let src = BufReader::new(bar.wrap_read(file));
@@ -464,7 +552,116 @@ pub(crate) fn load(path: &Path, order: InfoOrder) -> Result<(PoseGraph, ReadSumm
     };
     let out = io::read_graph_from(src, &path.display().to_string(), opts);
     bar.finish_and_clear();
-    out.map_err(|e| e.to_string())
+    let (graph, summary) = out.map_err(|e| e.to_string())?;
+    let skipped = skipped_lines(&summary);
+    if graph.edge_count() == 0 {
+        return Err(format!(
+            "{}: no 2D pose edge (EDGE_SE2 or EDGE2) in the file{}",
+            path.display(),
+            skipped.map_or(String::new(), |s| format!("; skipped {s}"))
+        ));
+    }
+    if let Some(s) = skipped.filter(|_| report_skipped) {
+        eprintln!("{}: skipped {s}", path.display());
+    }
+    Ok((graph, summary))
+}
+
+/// "12 lines with other tags: LANDMARK ×2, VERTEX_SE3:QUAT ×10", or None.
+pub(crate) fn skipped_lines(summary: &ReadSummary) -> Option<String> {
+    if summary.skipped.is_empty() {
+        return None;
+    }
+    let total: usize = summary.skipped.values().sum();
+    let list: Vec<String> = summary
+        .skipped
+        .iter()
+        .map(|(t, n)| format!("{t} ×{n}"))
+        .collect();
+    Some(format!(
+        "{} with other tags: {}",
+        plural(total, "line", "lines"),
+        list.join(", ")
+    ))
+}
+
+/// "1 hypothesis", "3 hypotheses".
+pub(crate) fn plural(n: usize, one: &str, many: &str) -> String {
+    format!("{n} {}", if n == 1 { one } else { many })
+}
+
+/// A number with `digits` decimals, never "-0.00…".
+pub(crate) fn fixed(x: f64, digits: usize) -> String {
+    let s = format!("{x:.digits$}");
+    match s.strip_prefix('-') {
+        Some(rest) if rest.bytes().all(|b| b == b'0' || b == b'.') => rest.to_owned(),
+        _ => s,
+    }
+}
+
+/// The information order as a user writes it.
+pub(crate) fn order_name(order: InfoOrder) -> &'static str {
+    match order {
+        InfoOrder::Auto => "auto",
+        InfoOrder::G2o => "g2o",
+        InfoOrder::Toro => "TORO",
+    }
+}
+
+/// A basis as its `--basis` value.
+pub(crate) fn basis_name(kind: BasisKind) -> String {
+    kind.to_possible_value()
+        .map_or_else(|| format!("{kind:?}"), |v| v.get_name().to_owned())
+}
+
+/// `result`, its error explained by [`explain_solver_error`].
+fn explained(path: &Path, order: InfoOrder, result: CliResult) -> CliResult {
+    result.map_err(|e| explain_solver_error(path, order, e))
+}
+
+/// A failed linear solve explained: when the graph's angle information spans more than double
+/// precision can factor, name the two edges (file lines) responsible.
+pub(crate) fn explain_solver_error(path: &Path, order: InfoOrder, error: String) -> String {
+    if !error.contains("linear system") {
+        return error;
+    }
+    let Ok((graph, summary)) = load_quiet(path, order) else {
+        return error;
+    };
+    let Some(spread) = graph.information_spread() else {
+        return error;
+    };
+    let describe = |e: usize| {
+        let edge = graph.edges()[e];
+        let line = summary
+            .edge_lines
+            .get(e)
+            .map_or(String::new(), |l| format!(" (line {l})"));
+        format!(
+            "edge {e}{line}, {}→{}, angle information {:e}",
+            edge.from(),
+            edge.to(),
+            1.0 / edge.sigma2()
+        )
+    };
+    format!(
+        "{}: the orientation system cannot be solved in double precision: {} is {:.1e} times {}; \
+         ratios above {:e} exceed what f64 resolves (scale the information or drop the edge)",
+        path.display(),
+        describe(spread.high),
+        spread.ratio,
+        describe(spread.low),
+        so2lin::graph::MAX_INFORMATION_SPREAD
+    )
+}
+
+/// Read a graph without progress or messages.
+fn load_quiet(path: &Path, order: InfoOrder) -> Result<(PoseGraph, ReadSummary), String> {
+    let opts = ReadOptions {
+        order,
+        ..Default::default()
+    };
+    io::read_graph(path, opts).map_err(|e| e.to_string())
 }
 
 fn stats_json(s: &GraphStats, summary: &ReadSummary) -> serde_json::Value {
@@ -484,7 +681,7 @@ fn stats_json(s: &GraphStats, summary: &ReadSummary) -> serde_json::Value {
 }
 
 fn info(path: &Path, order: InfoOrder, as_json: bool) -> CliResult {
-    let (graph, summary) = load(path, order)?;
+    let (graph, summary) = load_reporting(path, order, false)?;
     let s = graph.stats();
     if as_json {
         println!("{}", stats_json(&s, &summary));
@@ -492,17 +689,10 @@ fn info(path: &Path, order: InfoOrder, as_json: bool) -> CliResult {
     }
     println!("{}", path.display());
     print_stats(&s);
-    let order = summary
-        .order
-        .map_or("none (no edges)".to_owned(), |o| format!("{o:?}"));
+    let order = summary.order.map_or("none (no edges)", order_name);
     println!("  information order     {order}");
-    if !summary.skipped.is_empty() {
-        let list: Vec<String> = summary
-            .skipped
-            .iter()
-            .map(|(t, n)| format!("{t} ×{n}"))
-            .collect();
-        println!("  skipped lines         {}", list.join(", "));
+    if let Some(skipped) = skipped_lines(&summary) {
+        println!("  skipped               {skipped}");
     }
     if !summary.equivalences.is_empty() {
         println!(
@@ -574,19 +764,22 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
     // The paper's batch pipeline on the simulated graph, checked against the ground truth.
     let start = std::time::Instant::now();
     let cfg = BatchConfig::default();
-    let r = so2lin::batch::screen(&world.graph, &cfg).map_err(|e| e.to_string())?;
-    let est = screen::estimate_best(&world.graph, &r)?;
+    let r = in_phase("screening", || so2lin::batch::screen(&world.graph, &cfg))
+        .map_err(|e| e.to_string())?;
+    let est = in_phase("estimating orientations", || {
+        screen::estimate_best(&world.graph, &r)
+    })?;
     let truth = so2lin::wraps::gamma_of(&r.basis.cycles, &world.truth.wraps);
     let best_is_truth = r.hypotheses.first().is_some_and(|h| r.gamma(h) == truth);
     println!(
-        "batch screening ({:?} basis, α = {}, {} dof): {} of {} cycles determined, {} ambiguous, {} hypotheses, {:.1} ms",
-        cfg.basis,
+        "batch screening ({} basis, α = {}, {} dof): {} of {} cycles determined, {} ambiguous, {}, {:.1} ms",
+        basis_name(cfg.basis),
         cfg.screening.alpha,
         cfg.screening.dof,
         r.determined,
         r.model.len(),
         r.ambiguous.len(),
-        r.hypotheses.len(),
+        plural(r.hypotheses.len(), "hypothesis", "hypotheses"),
         1e3 * start.elapsed().as_secs_f64()
     );
     println!(
@@ -614,7 +807,8 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
     }
 
     // The same world online, edge by edge, recorded to an MCAP log and replayed.
-    let path = log.unwrap_or_else(|| std::env::temp_dir().join("so2lin-demo.mcap"));
+    let path = log
+        .unwrap_or_else(|| std::env::temp_dir().join(format!("so2lin-demo-{poses}-{seed}.mcap")));
     let online = OnlineConfig::default();
     let mut est = so2lin::online::OnlineEstimator::new(online).map_err(|e| e.to_string())?;
     let source = format!(

@@ -10,6 +10,7 @@ use so2lin::batch::{self, BatchConfig, BatchResult, Iteration, SecondOutcome};
 use so2lin::estimate::OrientationEstimator;
 use so2lin::graph::PoseGraph;
 use so2lin::io::InfoOrder;
+use so2lin::screening::Limit;
 
 /// Options of the `screen` command.
 pub struct ScreenArgs<'a> {
@@ -52,8 +53,14 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
     let t0 = Instant::now();
     let (graph, _) = crate::load(args.file, args.order)?;
     let read_s = t0.elapsed().as_secs_f64();
-    let r = batch::screen(&graph, &args.config).map_err(|e| e.to_string())?;
-    let est = estimate_best(&graph, &r)?;
+    let what = format!(
+        "screening {} edges, {} cycles",
+        graph.edge_count(),
+        graph.stats().cycles
+    );
+    let r =
+        crate::in_phase(what, || batch::screen(&graph, &args.config)).map_err(|e| e.to_string())?;
+    let est = crate::in_phase("estimating orientations", || estimate_best(&graph, &r))?;
     let total = t0.elapsed().as_secs_f64();
     if let (Some(path), Some(e)) = (args.orientations, &est) {
         write_orientations(path, &graph, &e.theta)?;
@@ -63,7 +70,7 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
     if args.json {
         let second = match r.outcome {
             SecondOutcome::TooMany(t) => {
-                json!({"too_many": t.found, "cap": t.cap, "visited": t.visited})
+                json!({"too_many": t.found, "cap": t.cap, "visited": t.visited, "limit": t.limit})
             }
             _ => json!(r.second),
         };
@@ -116,13 +123,14 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
     }
     if let Some(f) = &r.fallback {
         println!(
-            "basis {:?} not used ({}): falling back to the incremental basis",
-            f.requested, f.reason
+            "basis {} not used ({}): falling back to the incremental basis",
+            crate::basis_name(f.requested),
+            f.reason
         );
     }
     println!(
-        "basis {:?}: weight {:.4}, mean cycle length {:.1}, max {}, {:.4} s",
-        r.basis.kind,
+        "basis {}: weight {:.4}, mean cycle length {:.1}, max {}, {:.4} s",
+        crate::basis_name(r.basis.kind),
         r.basis.weight(&sigma2),
         r.basis.mean_length(),
         r.basis.max_length(),
@@ -141,14 +149,21 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
     );
     print_table(&r.first);
     match r.outcome {
-        SecondOutcome::TooMany(t) if t.found >= t.cap => println!(
-            "second screening: too many hypotheses: {} ≥ cap {} (showing the bootstrapped answer)",
-            t.found, t.cap
-        ),
-        SecondOutcome::TooMany(t) => println!(
-            "second screening: too many hypotheses: search budget of {} partial vectors exhausted with {} found (showing the bootstrapped answer)",
-            t.visited, t.found
-        ),
+        SecondOutcome::TooMany(t) => match t.limit {
+            Limit::Hypotheses => println!(
+                "second screening: too many hypotheses: {} ≥ cap {} (showing the bootstrapped answer)",
+                t.found, t.cap
+            ),
+            Limit::Visits => println!(
+                "second screening: too many hypotheses: search budget of {} partial vectors exhausted with {} found (showing the bootstrapped answer)",
+                t.visited, t.found
+            ),
+            Limit::Memory => println!(
+                "second screening: too many hypotheses: memory bound of {} MiB reached with {} found (showing the bootstrapped answer)",
+                so2lin::screening::MAX_ENUMERATION_BYTES >> 20,
+                t.found
+            ),
+        },
         SecondOutcome::NoneInside => println!(
             "second screening: no candidate vector passes the joint test (inconsistent data); showing the bootstrapped answer"
         ),
@@ -179,14 +194,19 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
         }
     }
     println!(
-        "determined {} of {} cycles; {} ambiguous; {} hypotheses",
+        "determined {} of {} cycles; {} ambiguous; {}",
         r.determined,
         r.model.len(),
         r.ambiguous.len(),
-        r.hypotheses.len()
+        crate::plural(r.hypotheses.len(), "hypothesis", "hypotheses")
     );
     for (k, h) in r.hypotheses.iter().take(10).enumerate() {
-        println!("  #{:<3} χ² = {:<12.4} p = {:.4}", k + 1, h.chi2, h.p_value);
+        println!(
+            "  #{:<3} χ² = {:<12} p = {}",
+            k + 1,
+            crate::fixed(h.chi2, 4),
+            crate::fixed(h.p_value, 4)
+        );
     }
     println!("success probability ≥ {:.6}", r.success_lower_bound);
     println!(
@@ -200,8 +220,12 @@ fn print_table(rows: &[Iteration]) {
     println!("  iter  determined %   density   log10|Γ|   seconds");
     for it in rows {
         println!(
-            "  {:>4}  {:>11.2}   {:>7.4}   {:>8.2}   {:>7.4}",
-            it.iteration, it.determined_percent, it.density, it.log10_candidates, it.seconds
+            "  {:>4}  {:>11.2}   {:>7.4}   {:>8}   {:>7.4}",
+            it.iteration,
+            it.determined_percent,
+            it.density,
+            crate::fixed(it.log10_candidates, 2),
+            it.seconds
         );
     }
 }

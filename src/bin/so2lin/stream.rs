@@ -239,12 +239,20 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         c.estimate_renewals,
         c.renewal_waits
     );
+    let second = match result.outcome {
+        so2lin::screening::SecondOutcome::Complete => "second screening complete",
+        so2lin::screening::SecondOutcome::NoneInside => {
+            "no candidate vector passed the joint test: showing the bootstrapped answer"
+        }
+        so2lin::screening::SecondOutcome::TooMany(_) => {
+            "too many hypotheses: showing the bootstrapped answer"
+        }
+    };
     println!(
-        "finish: {} determined, {} ambiguous, {} hypotheses ({:?})",
+        "finish: {} determined, {} ambiguous, {} ({second})",
         result.determined,
         result.ambiguous.len(),
-        result.hypotheses.len(),
-        result.outcome
+        crate::plural(result.hypotheses.len(), "hypothesis", "hypotheses"),
     );
     for (k, h) in result.hypotheses.iter().take(10).enumerate() {
         println!("  #{:<3} χ² = {:<12.4} p = {:.4}", k + 1, h.chi2, h.p_value);
