@@ -182,15 +182,17 @@ pub enum BatchError {
 }
 
 /// Screen a γ model to the end from the screener's current state: the first screening to its
-/// fixed point (from scratch when nothing is determined yet), then the second.
-/// Shared by [`screen`] and the online estimator's `finish`.
+/// fixed point (from scratch when nothing is determined yet), then the second; cycle i is
+/// tested at half-width factor `q(i)`. Shared by [`screen`] and the online estimator's `finish`.
 pub(crate) fn run_screening(
     model: &GammaModel,
     mut screener: Screener,
     cfg: &ScreeningConfig,
-    q: f64,
+    q: &dyn Fn(usize) -> f64,
     cycles: &CycleBasis,
 ) -> Result<Screened, SingularError> {
+    let qs: Vec<f64> = (0..model.len()).map(q).collect();
+    let q = |i: usize| qs[i];
     let edges = |i: usize| {
         cycles.cycles[i]
             .terms
@@ -200,12 +202,29 @@ pub(crate) fn run_screening(
     };
     screener.grow(model.len());
     let mut first = Vec::new();
-    screener.first_screening(model, q, &edges, &mut first)?;
-    screener.finish(model, cfg, q, &edges, first)
+    screener.first_screening(model, &q, &edges, &mut first)?;
+    screener.finish(model, cfg, &q, &edges, first)
 }
 
-/// Run the whole pipeline on a graph.
+/// Run the whole pipeline on a graph. Family-wise (the default), every cycle is tested at
+/// α/(2ℓ) (Bonferroni, [`ScreeningConfig::level`]).
 pub fn screen(graph: &PoseGraph, config: &BatchConfig) -> Result<BatchResult, BatchError> {
+    screen_with(graph, config, false)
+}
+
+/// The pipeline with the online estimator's levels: cycle t (in basis order, which for the
+/// incremental basis is the order the cycles close in) at
+/// [`ScreeningConfig::online_level`]`(t)`. A batch run and a finished online run on the same
+/// edges then test every cycle at the same level (used to compare the two).
+pub fn screen_spending(graph: &PoseGraph, config: &BatchConfig) -> Result<BatchResult, BatchError> {
+    screen_with(graph, config, true)
+}
+
+fn screen_with(
+    graph: &PoseGraph,
+    config: &BatchConfig,
+    spending: bool,
+) -> Result<BatchResult, BatchError> {
     config.screening.validate()?;
     let t0 = Instant::now();
     let (basis, solver, fallback) = integral_basis(graph, config.basis)?;
@@ -214,8 +233,16 @@ pub fn screen(graph: &PoseGraph, config: &BatchConfig) -> Result<BatchResult, Ba
     let sigma2: Vec<f64> = graph.edges().iter().map(|e| e.sigma2()).collect();
     let delta: Vec<f64> = graph.edges().iter().map(|e| e.delta()).collect();
     let model = GammaModel::from_cycles(&basis.cycles, &sigma2, &delta);
-    let q = config.screening.quantile(model.len());
-    let screened = run_screening(&model, Screener::new(), &config.screening, q, &basis)?;
+    let s = config.screening;
+    let bonferroni = s.quantile(model.len());
+    let q = |t: usize| {
+        if spending {
+            s.online_quantile(t)
+        } else {
+            bonferroni
+        }
+    };
+    let screened = run_screening(&model, Screener::new(), &s, &q, &basis)?;
     Ok(BatchResult {
         edges: graph.edge_count(),
         basis,

@@ -43,19 +43,15 @@ use crate::wraps::WrapSolver;
 /// Settings of the online estimator.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct OnlineConfig {
-    /// Screening settings (α, degrees of freedom, family-wise, hypothesis cap).
+    /// Screening settings (α, degrees of freedom, family-wise, hypothesis cap). Family-wise,
+    /// cycle t is tested at [`ScreeningConfig::online_level`]`(t)` (α-spending).
     pub screening: ScreeningConfig,
-    /// With a family-wise level the number of cycles ℓ is not known in advance online: the
-    /// per-cycle level is computed for this many cycles (the guarantee holds while the run
-    /// closes no more). Ignored at a per-cycle level.
-    pub expected_cycles: usize,
 }
 
 impl Default for OnlineConfig {
     fn default() -> Self {
         Self {
             screening: ScreeningConfig::default(),
-            expected_cycles: 10_000,
         }
     }
 }
@@ -201,7 +197,6 @@ impl From<EstimateError> for OnlineError {
 /// ```
 pub struct OnlineEstimator {
     config: OnlineConfig,
-    q: f64,
     graph: PoseGraph,
     sigma2: Vec<f64>,
     delta: Vec<f64>,
@@ -230,10 +225,8 @@ impl OnlineEstimator {
     /// A new estimator with no nodes.
     pub fn new(config: OnlineConfig) -> Result<Self, OnlineError> {
         config.screening.validate()?;
-        let q = config.screening.quantile(config.expected_cycles);
         Ok(Self {
             config,
-            q,
             graph: PoseGraph::new(),
             sigma2: Vec::new(),
             delta: Vec::new(),
@@ -346,7 +339,9 @@ impl OnlineEstimator {
         let cycles = &self.cycles;
         let (m, iv, determined) = self
             .screener
-            .screen(&self.model, t, self.q, || edges_of(&cycles[t]));
+            .screen(&self.model, t, self.config.screening.online_quantile(t), || {
+                edges_of(&cycles[t])
+            });
         let mut rescreened = Vec::new();
         if determined {
             self.propagate(t, &mut rescreened);
@@ -385,7 +380,9 @@ impl OnlineEstimator {
                 let cycles = &self.cycles;
                 let (m, after, determined) = self
                     .screener
-                    .screen(&self.model, i, self.q, || edges_of(&cycles[i]));
+                    .screen(&self.model, i, self.config.screening.online_quantile(i), || {
+                        edges_of(&cycles[i])
+                    });
                 self.counters.rescreens += 1;
                 if determined {
                     self.ambiguous.remove(&i);
@@ -576,7 +573,7 @@ impl OnlineEstimator {
             &self.model,
             self.screener.clone(),
             &self.config.screening,
-            self.q,
+            &|t| self.config.screening.online_quantile(t),
             &basis,
         )
         .map_err(|e| OnlineError::Numerical(e.to_string()))?;

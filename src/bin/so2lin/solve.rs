@@ -100,6 +100,8 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
                     "refine_costs": s.refined.costs,
                     "iterations": s.refined.iterations,
                     "converged": s.refined.converged,
+                    "stop": s.refined.stop,
+                    "refinement": s.refined.stop.to_string(),
                     "seconds": s.seconds,
                 })
             })
@@ -133,18 +135,19 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
         1e3 * solved.screen_seconds
     );
     println!(
-        "{:>4} {:>14} {:>16} {:>16} {:>6} {:>9}",
+        "{:>4} {:>14} {:>16} {:>16} {:>6} {:>9}  refinement",
         "hyp", "χ² orient.", "cost linear", "cost refined", "iters", "ms"
     );
     for (i, s) in &solved.solutions {
         println!(
-            "{:>4} {:>14.4} {:>16.6e} {:>16.6e} {:>6} {:>9.1}",
+            "{:>4} {:>14.4} {:>16.6e} {:>16.6e} {:>6} {:>9.1}  {}",
             i,
             s.chi2_orientation,
             s.cost_linear,
             s.refined.cost(),
             s.refined.iterations,
-            1e3 * s.seconds
+            1e3 * s.seconds,
+            s.refined.stop
         );
     }
     if let Some((i, _)) = solved.solutions.first() {
@@ -152,11 +155,12 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
     }
     if let Some((b, s)) = &baseline {
         println!(
-            "odometry start, same refinement: cost {:.6e} → {:.6e} ({} iterations, {:.1} ms)",
+            "odometry start, same refinement: cost {:.6e} → {:.6e} ({} iterations, {:.1} ms, {})",
             b.costs.first().copied().unwrap_or(f64::NAN),
             b.cost(),
             b.iterations,
-            1e3 * s
+            1e3 * s,
+            b.stop
         );
     }
     println!("total {:.1} ms", 1e3 * total);
@@ -169,6 +173,8 @@ fn odometry_json(b: &Refined, seconds: f64) -> serde_json::Value {
         "cost_refined": b.cost(),
         "refine_costs": b.costs,
         "iterations": b.iterations,
+        "converged": b.converged,
+        "stop": b.stop,
         "seconds": seconds,
     })
 }
