@@ -171,6 +171,11 @@ fn linearise(z: Pose2, xi: Pose2, xj: Pose2) -> ([f64; 3], [[f64; 3]; 3], [[f64;
 
 /// `Σ_e e_eᵀ Ω_e e_e` (g2o's χ²) of poses `x` (one per node, dense index order).
 pub fn cost(graph: &PoseGraph, x: &[Pose2]) -> f64 {
+    edge_costs(graph, x).sum()
+}
+
+/// Every edge's term `e_eᵀ Ω_e e_e` of [`cost`], in edge order.
+pub fn edge_costs<'a>(graph: &'a PoseGraph, x: &'a [Pose2]) -> impl Iterator<Item = f64> + 'a {
     graph
         .edges()
         .iter()
@@ -182,7 +187,6 @@ pub fn cost(graph: &PoseGraph, x: &[Pose2]) -> f64 {
                 .map(|i| (0..3).map(|j| e[i] * o[i][j] * e[j]).sum::<f64>())
                 .sum::<f64>()
         })
-        .sum()
 }
 
 /// Refine `initial` (one pose per node; each component's anchor, its first node, stays fixed)

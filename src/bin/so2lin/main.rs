@@ -1,7 +1,7 @@
 //! The `so2lin` command-line tool.
 
 use std::fs::File;
-use std::io::{BufReader, BufWriter, IsTerminal, Write};
+use std::io::{BufReader, IsTerminal};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -10,6 +10,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
 mod bases;
+mod inject;
 mod plot;
 mod replay;
 mod screen;
@@ -22,7 +23,25 @@ use so2lin::graph::{GraphStats, PoseGraph};
 use so2lin::io::{self, InfoOrder, ReadOptions, ReadSummary};
 use so2lin::online::OnlineConfig;
 use so2lin::screening::ScreeningConfig;
-use so2lin::sim::{self, SimConfig};
+use so2lin::sim::{self, OutlierConfig, OutlierKind, SimConfig};
+
+/// Placement of false loop closures (`--outlier-kind`, `--kind`).
+#[derive(Clone, Copy, ValueEnum)]
+enum OutlierKindArg {
+    /// Independent random node pairs.
+    Random,
+    /// Groups of 10 consecutive edges between two regions sharing one measurement.
+    Clustered,
+}
+
+impl From<OutlierKindArg> for OutlierKind {
+    fn from(k: OutlierKindArg) -> Self {
+        match k {
+            OutlierKindArg::Random => OutlierKind::Random,
+            OutlierKindArg::Clustered => OutlierKind::Clustered,
+        }
+    }
+}
 
 #[derive(Parser)]
 #[command(
@@ -152,9 +171,43 @@ enum Command {
         /// Probability that an eligible earlier pose gets a loop closure.
         #[arg(long)]
         loop_closure_prob: Option<f64>,
+        /// Add this many false loop closures (Vertigo protocol, as `inject`); the ground truth
+        /// lists them under `false_edges`.
+        #[arg(long, default_value_t = 0)]
+        outliers: usize,
+        /// Placement of the false loop closures.
+        #[arg(long, value_enum, default_value = "random")]
+        outlier_kind: OutlierKindArg,
         /// Output g2o file.
         #[arg(long)]
         out: PathBuf,
+    },
+    /// Add false loop closures to a graph file (Vertigo protocol): K random pairs, or groups
+    /// of 10 consecutive edges between two regions sharing one measurement; angle uniform in
+    /// (−π, π], translation uniform in ±10; a genuine loop closure's information; each false
+    /// edge right after the edge introducing its later node (robot order). Writes g2o.
+    Inject {
+        /// Graph file (g2o or TORO).
+        file: PathBuf,
+        /// Number of false loop closures K.
+        #[arg(long)]
+        outliers: usize,
+        /// Placement of the false loop closures.
+        #[arg(long, value_enum, default_value = "random")]
+        kind: OutlierKindArg,
+        /// Random seed.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Output g2o file.
+        #[arg(long)]
+        out: PathBuf,
+        /// Write the false edges as JSON here (`false_edges[{edge, from, to, group}]`, edge =
+        /// 0-based index in OUT's edge order).
+        #[arg(long)]
+        truth: Option<PathBuf>,
+        /// Information-matrix order of edge lines (default: detect).
+        #[arg(long, value_enum, default_value = "auto")]
+        order: OrderArg,
     },
     /// Screen the cycle integers of a graph with the paper's batch pipeline.
     Screen {
@@ -183,6 +236,12 @@ enum Command {
         /// Solve every surviving hypothesis and rank them by refined cost.
         #[arg(long)]
         all_hypotheses: bool,
+        /// Plain least squares on every edge: no robust kernel. By default loop closures get
+        /// the DCS kernel with the family-wise threshold Φ = χ²_3⁻¹(1 − α/(2·loop closures)),
+        /// those still above Φ at the robust solution are rejected (and listed), and the
+        /// refinement runs on the rest.
+        #[arg(long)]
+        no_robust: bool,
         /// Also run the same refinement from dead-reckoned odometry (the local-minimum baseline).
         #[arg(long)]
         odometry: bool,
@@ -300,14 +359,40 @@ fn main() -> ExitCode {
             sigma_theta,
             sigma_xy,
             loop_closure_prob,
+            outliers,
+            outlier_kind,
             out,
         } => {
             let mut c = SimConfig::new(poses, seed);
             c.sigma_theta = sigma_theta.unwrap_or(c.sigma_theta);
             c.sigma_xy = sigma_xy.unwrap_or(c.sigma_xy);
             c.loop_closure_probability = loop_closure_prob.unwrap_or(c.loop_closure_probability);
-            simulate(&c, &out)
+            let outliers = OutlierConfig {
+                count: outliers,
+                kind: outlier_kind.into(),
+                seed,
+            };
+            simulate(&c, &outliers, &out)
         }
+        Command::Inject {
+            file,
+            outliers,
+            kind,
+            seed,
+            out,
+            truth,
+            order,
+        } => inject::run(inject::InjectArgs {
+            file: &file,
+            order: order.into(),
+            outliers: OutlierConfig {
+                count: outliers,
+                kind: kind.into(),
+                seed,
+            },
+            out: &out,
+            truth: truth.as_deref(),
+        }),
         Command::Demo {
             poses,
             seed,
@@ -363,6 +448,7 @@ fn main() -> ExitCode {
             tolerance,
             gradient_tolerance,
             all_hypotheses,
+            no_robust,
             odometry,
             out,
             json,
@@ -370,6 +456,10 @@ fn main() -> ExitCode {
             file: &batch.file,
             order: batch.order.into(),
             config: batch.config(),
+            robust: (!no_robust).then(|| so2lin::batch::RobustConfig {
+                alpha: batch.config().screening.alpha,
+                ..Default::default()
+            }),
             refine: so2lin::refine::RefineConfig {
                 iterations: refine,
                 relative_decrease: tolerance,
@@ -506,26 +596,23 @@ fn print_stats(s: &GraphStats) {
     }
 }
 
-fn simulate(config: &SimConfig, out: &Path) -> CliResult {
+fn simulate(config: &SimConfig, outliers: &OutlierConfig, out: &Path) -> CliResult {
     let world = sim::simulate(config).map_err(|e| e.to_string())?;
-    let create = |p: &Path| File::create(p).map_err(|e| format!("{}: {e}", p.display()));
-    let mut w = BufWriter::new(create(out)?);
-    io::write_g2o(&mut w, &world.graph, None).map_err(|e| format!("{}: {e}", out.display()))?;
     let truth_path = out.with_extension("truth.json");
-    let mut t = BufWriter::new(create(&truth_path)?);
-    serde_json::to_writer(
-        &mut t,
-        &json!({ "config": world.config, "truth": world.truth }),
-    )
-    .map_err(|e| format!("{}: {e}", truth_path.display()))?;
-    t.flush()
-        .map_err(|e| format!("{}: {e}", truth_path.display()))?;
-    let s = world.graph.stats();
+    let corrupted = sim::inject_outliers(&world.graph, outliers).map_err(|e| e.to_string())?;
+    let extra = json!({
+        "config": world.config,
+        "truth": world.truth,
+        "truth_note": "truth.wraps and truth.noise are per genuine edge, in file order with the false edges left out",
+    });
+    inject::write_corrupted(&corrupted, outliers, out, Some(&truth_path), extra)?;
+    let s = corrupted.graph.stats();
     println!(
-        "wrote {} ({} nodes, {} edges, {} cycles) and {}",
+        "wrote {} ({} nodes, {} edges of which {} false loop closures, {} cycles) and {}",
         out.display(),
         s.nodes,
         s.edges,
+        corrupted.false_edges.len(),
         s.cycles,
         truth_path.display()
     );
