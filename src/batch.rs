@@ -309,7 +309,10 @@ pub fn solve_robust(
     let (chi2_orientation, linear) = first.unwrap_or_default();
     let cost_linear = crate::refine::cost(graph, &linear);
     Ok(Solution {
-        wraps: wraps_of(graph, &refined.poses.iter().map(|p| p.theta).collect::<Vec<_>>()),
+        wraps: wraps_of(
+            graph,
+            &refined.poses.iter().map(|p| p.theta).collect::<Vec<_>>(),
+        ),
         chi2_orientation,
         linear,
         cost_linear,
@@ -402,7 +405,11 @@ fn robust_pass(
         // Leave-one-out: a false edge the map bent to fit has a small residual but a large
         // cost drop when it is left out, Δ_e = min F − min F without e (χ²_3 for a genuine
         // edge in the linear-Gaussian model). Tested for the largest residuals.
-        let w_all: Vec<f64> = if w2[0].is_nan() { vec![1.0; edges.len()] } else { w2 };
+        let w_all: Vec<f64> = if w2[0].is_nan() {
+            vec![1.0; edges.len()]
+        } else {
+            w2
+        };
         let with = crate::refine::cost(&reweighted(graph, &w_all)?, &x);
         let mut order: Vec<usize> = (0..edges.len()).filter(|&e| loop_closure[e]).collect();
         order.sort_by(|&a, &b| chi2[b].total_cmp(&chi2[a]).then(a.cmp(&b)));
@@ -430,7 +437,9 @@ fn wraps_of(graph: &PoseGraph, theta: &[f64]) -> Vec<i64> {
         .edges()
         .iter()
         .zip(graph.endpoints())
-        .map(|(e, &(a, b))| ((e.delta() - theta[b] + theta[a]) / std::f64::consts::TAU).round() as i64)
+        .map(|(e, &(a, b))| {
+            ((e.delta() - theta[b] + theta[a]) / std::f64::consts::TAU).round() as i64
+        })
         .collect()
 }
 

@@ -41,19 +41,11 @@ use crate::screening::{
 use crate::wraps::WrapSolver;
 
 /// Settings of the online estimator.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct OnlineConfig {
     /// Screening settings (α, degrees of freedom, family-wise, hypothesis cap). Family-wise,
     /// cycle t is tested at [`ScreeningConfig::online_level`]`(t)` (α-spending).
     pub screening: ScreeningConfig,
-}
-
-impl Default for OnlineConfig {
-    fn default() -> Self {
-        Self {
-            screening: ScreeningConfig::default(),
-        }
-    }
 }
 
 /// What a step decided about a cycle.
@@ -337,11 +329,12 @@ impl OnlineEstimator {
         self.cycles.push(cycle);
         self.screener.grow(t + 1);
         let cycles = &self.cycles;
-        let (m, iv, determined) = self
-            .screener
-            .screen(&self.model, t, self.config.screening.online_quantile(t), || {
-                edges_of(&cycles[t])
-            });
+        let (m, iv, determined) = self.screener.screen(
+            &self.model,
+            t,
+            self.config.screening.online_quantile(t),
+            || edges_of(&cycles[t]),
+        );
         let mut rescreened = Vec::new();
         if determined {
             self.propagate(t, &mut rescreened);
@@ -378,11 +371,12 @@ impl OnlineEstimator {
             for i in neighbours {
                 let before = self.screener.interval(i);
                 let cycles = &self.cycles;
-                let (m, after, determined) = self
-                    .screener
-                    .screen(&self.model, i, self.config.screening.online_quantile(i), || {
-                        edges_of(&cycles[i])
-                    });
+                let (m, after, determined) = self.screener.screen(
+                    &self.model,
+                    i,
+                    self.config.screening.online_quantile(i),
+                    || edges_of(&cycles[i]),
+                );
                 self.counters.rescreens += 1;
                 if determined {
                     self.ambiguous.remove(&i);

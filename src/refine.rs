@@ -136,6 +136,9 @@ impl Refined {
     }
 }
 
+/// A 3 × 3 Jacobian block, row-major.
+type Block = [[f64; 3]; 3];
+
 /// Error of one edge and its Jacobians w.r.t. `(x_i, y_i, θ_i)` and `(x_j, y_j, θ_j)`.
 fn linearise(z: Pose2, xi: Pose2, xj: Pose2) -> ([f64; 3], [[f64; 3]; 3], [[f64; 3]; 3]) {
     let (si, ci) = (libm::sin(xi.theta), libm::cos(xi.theta));
@@ -213,7 +216,7 @@ pub fn refine(
     let mut iterations = 0;
     let mut gradient = f64::NAN;
     // Jacobian blocks of every edge at x, for the model's predicted decrease.
-    let mut jac: Vec<([[f64; 3]; 3], [[f64; 3]; 3])> = Vec::with_capacity(graph.edge_count());
+    let mut jac: Vec<[Block; 2]> = Vec::with_capacity(graph.edge_count());
     let mut assembled = false;
     let stop = loop {
         if ne.dim() == 0 {
@@ -225,7 +228,7 @@ pub fn refine(
             for (e, (edge, &(a, b))) in graph.edges().iter().zip(graph.endpoints()).enumerate() {
                 let (err, ja, jb) = linearise(edge.measurement(), x[a], x[b]);
                 ne.add(e, &ja, &jb, &edge.information().matrix(), &err);
-                jac.push((ja, jb));
+                jac.push([ja, jb]);
             }
             assembled = true;
             gradient = ne.rhs().iter().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -260,7 +263,7 @@ pub fn refine(
             .iter()
             .zip(graph.endpoints())
             .zip(&jac)
-            .map(|((edge, &(a, b)), (ja, jb))| {
+            .map(|((edge, &(a, b)), [ja, jb])| {
                 let jh: [f64; 3] = std::array::from_fn(|r| {
                     (0..3)
                         .map(|k| ja[r][k] * delta(a, k) + jb[r][k] * delta(b, k))

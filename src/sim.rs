@@ -602,9 +602,12 @@ mod outlier_tests {
                             .map(|f| c.graph.edges()[f.edge])
                             .collect();
                         es.sort_by_key(|e| e.from());
-                        assert!(es.windows(2).all(|p| p[0].measurement() == p[1].measurement()
-                            && p[1].from() == p[0].from() + 1
-                            && p[1].to() == p[0].to() + 1));
+                        assert!(
+                            es.windows(2)
+                                .all(|p| p[0].measurement() == p[1].measurement()
+                                    && p[1].from() == p[0].from() + 1
+                                    && p[1].to() == p[0].to() + 1)
+                        );
                     }
                 }
             }
@@ -620,7 +623,10 @@ mod outlier_tests {
         };
         assert!(matches!(
             inject_outliers(&tiny.graph, &cfg),
-            Err(SimError::Parameter { name: "outliers", .. })
+            Err(SimError::Parameter {
+                name: "outliers",
+                ..
+            })
         ));
     }
 }

@@ -26,7 +26,15 @@ fn robust(g: &PoseGraph) -> so2lin::batch::Solution {
     let r = screen(g, &BatchConfig::default()).unwrap();
     let orient = OrientationEstimator::new(g).unwrap();
     let cfg = RobustConfig::default();
-    solve_robust(g, &r, &orient, &r.hypotheses[0], &RefineConfig::default(), &cfg).unwrap()
+    solve_robust(
+        g,
+        &r,
+        &orient,
+        &r.hypotheses[0],
+        &RefineConfig::default(),
+        &cfg,
+    )
+    .unwrap()
 }
 
 /// On clean worlds the kernel changes nothing: no loop closure rejected, the same optimum.
@@ -45,16 +53,20 @@ fn the_kernel_leaves_clean_worlds_alone() {
     }
     // The rejection test is family-wise at α = 0.01: a world with a rejection is possible
     // but rare; two in ten would be a 1-in-2000 event.
-    assert!(rejected_worlds <= 1, "{rejected_worlds} clean worlds had rejections");
+    assert!(
+        rejected_worlds <= 1,
+        "{rejected_worlds} clean worlds had rejections"
+    );
 }
 
-/// Simulated worlds with K false loop closures: how often the robust solution is the
-/// outlier-free one, and what the kernel rejected. Asserted: most runs with one or ten
-/// random outliers succeed, and no genuine edge is rejected where the run succeeded.
+/// Simulated worlds (noise as declared) with K false loop closures: the robust solution is
+/// the outlier-free one in at least 5 of 6 worlds for each setting (measured: 6 of 6), and
+/// over all runs at least 95 % of the rejected edges are false.
 #[test]
 fn the_kernel_reaches_the_outlier_free_solution_on_simulated_worlds() {
     let mut ok = [0usize; 3];
     let mut runs = [0usize; 3];
+    let (mut rejected_all, mut rejected_false) = (0usize, 0usize);
     for seed in 0..6u64 {
         let w = simulate(&SimConfig::new(400, 700 + seed)).unwrap();
         let clean = plain(&w.graph).refined.cost();
@@ -79,6 +91,8 @@ fn the_kernel_reaches_the_outlier_free_solution_on_simulated_worlds() {
             let on_clean = cost(&w.graph, &r.refined.poses);
             let success = on_clean <= 1.01 * clean;
             let false_rejected = r.rejected.iter().filter(|x| c.is_false(x.edge)).count();
+            rejected_all += r.rejected.len();
+            rejected_false += false_rejected;
             println!(
                 "seed {seed} K = {k} {kind:?}: clean-graph cost {on_clean:.1} vs {clean:.1}; rejected {} ({false_rejected} false of {k})",
                 r.rejected.len()
@@ -87,8 +101,15 @@ fn the_kernel_reaches_the_outlier_free_solution_on_simulated_worlds() {
             ok[slot] += usize::from(success);
         }
     }
-    println!("reached the outlier-free solution: K=1 random {}/{}, K=10 random {}/{}, K=10 clustered {}/{}", ok[0], runs[0], ok[1], runs[1], ok[2], runs[2]);
-    assert!(ok[0] * 2 > runs[0], "{ok:?} of {runs:?}");
+    println!(
+        "reached the outlier-free solution: K=1 random {}/{}, K=10 random {}/{}, K=10 clustered {}/{}",
+        ok[0], runs[0], ok[1], runs[1], ok[2], runs[2]
+    );
+    assert!(ok.iter().all(|&k| k >= 5), "{ok:?} of {runs:?}");
+    assert!(
+        rejected_false as f64 >= 0.95 * rejected_all as f64,
+        "{rejected_false} of {rejected_all} rejected are false"
+    );
 }
 
 /// `so2lin simulate --outliers` lists its false edges; `so2lin inject` adds K more to a file.
@@ -99,7 +120,15 @@ fn cli_simulate_and_inject_write_the_false_edges() {
     let bin = env!("CARGO_BIN_EXE_so2lin");
     let world = dir.join("w.g2o");
     let st = Command::new(bin)
-        .args(["simulate", "--poses", "300", "--seed", "2", "--outliers", "12"])
+        .args([
+            "simulate",
+            "--poses",
+            "300",
+            "--seed",
+            "2",
+            "--outliers",
+            "12",
+        ])
         .args(["--outlier-kind", "clustered", "--out"])
         .arg(&world)
         .status()
@@ -123,7 +152,15 @@ fn cli_simulate_and_inject_write_the_false_edges() {
     let st = Command::new(bin)
         .arg("inject")
         .arg(&world)
-        .args(["--outliers", "5", "--kind", "random", "--seed", "4", "--out"])
+        .args([
+            "--outliers",
+            "5",
+            "--kind",
+            "random",
+            "--seed",
+            "4",
+            "--out",
+        ])
         .arg(&out)
         .arg("--truth")
         .arg(&tj)
@@ -156,7 +193,9 @@ fn cli_simulate_and_inject_write_the_false_edges() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// M3500 with one injected random false loop closure (datasets required).
+/// M3500 with one injected random false loop closure (datasets required). Seed 1 is a case
+/// the residual test alone missed (the map bends to fit the false edge: cost on the clean
+/// graph +61 %); the leave-one-out test catches it.
 #[test]
 fn m3500_with_one_false_loop_closure() {
     let Some(path) = common::dataset("M3500.g2o") else {
@@ -186,4 +225,27 @@ fn m3500_with_one_false_loop_closure() {
     );
     assert!(on_clean <= 1.01 * clean.refined.cost());
     assert!(r.rejected.iter().all(|x| c.is_false(x.edge)));
+}
+
+/// The kernel rejects nothing on clean benchmark files and leaves their optimum unchanged
+/// (datasets required).
+#[test]
+fn the_kernel_leaves_clean_datasets_alone() {
+    for name in [
+        "intel.g2o",
+        "MIT.g2o",
+        "CSAIL.g2o",
+        "FR079.g2o",
+        "M3500b.g2o",
+    ] {
+        let Some(path) = common::dataset(name) else {
+            return;
+        };
+        let (g, _) = so2lin::io::read_graph(&path, Default::default()).unwrap();
+        let p = plain(&g);
+        let r = robust(&g);
+        assert!(r.rejected.is_empty(), "{name}: {:?}", r.rejected);
+        let (a, b) = (p.refined.cost(), r.refined.cost());
+        assert!((a - b).abs() <= 1e-6 * a, "{name}: {a} vs {b}");
+    }
 }

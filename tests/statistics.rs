@@ -140,8 +140,8 @@ fn screening_keeps_the_truth_on_simulated_worlds() {
 /// determined cycle (or, when the set was enumerated, the whole surviving set) disagrees with
 /// the truth.
 fn alarm(r: &BatchResult, truth: &[i64]) -> bool {
-    let wrong = (0..truth.len())
-        .any(|i| !r.ambiguous.contains(&i) && r.determined_gamma[i] != truth[i]);
+    let wrong =
+        (0..truth.len()).any(|i| !r.ambiguous.contains(&i) && r.determined_gamma[i] != truth[i]);
     let truth_a: Vec<i64> = r.ambiguous.iter().map(|&i| truth[i]).collect();
     let missed = matches!(r.outcome, SecondOutcome::Complete)
         && !r.hypotheses.iter().any(|h| h.values == truth_a);
@@ -195,8 +195,7 @@ fn defaults_raise_no_alarm_on_clean_datasets() {
     };
     let mut checked = 0;
     for name in names {
-        let (graph, _) =
-            so2lin::io::read_graph(&dir.join(&name), Default::default()).unwrap();
+        let (graph, _) = so2lin::io::read_graph(dir.join(&name), Default::default()).unwrap();
         if graph.edge_count() > 25_000 || name == "manhattan.g2o" {
             continue;
         }

@@ -54,7 +54,14 @@ pub fn solve_graph_with(
 ) -> Result<Solved, String> {
     let t = Instant::now();
     let screening = batch::screen(graph, config).map_err(|e| e.to_string())?;
-    solve_screened_with(graph, screening, t.elapsed().as_secs_f64(), refine, all, robust)
+    solve_screened_with(
+        graph,
+        screening,
+        t.elapsed().as_secs_f64(),
+        refine,
+        all,
+        robust,
+    )
 }
 
 /// Solve the best hypothesis of a screening, or all of them.
@@ -192,9 +199,9 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
         println!("best: hypothesis {i} (lowest refined cost)");
         match (&args.robust, best.rejected.len()) {
             (None, _) => println!("robust kernel: off (plain least squares on every edge)"),
-            (Some(_), 0) => println!(
-                "robust kernel (DCS on loop closures): no loop closure rejected"
-            ),
+            (Some(_), 0) => {
+                println!("robust kernel (DCS on loop closures): no loop closure rejected")
+            }
             (Some(rc), n) => {
                 println!(
                     "robust kernel (DCS on loop closures): {n} rejected (SE(2) χ²_e above the family-wise threshold Φ = {:.1}, α = {}); the refined cost is over the other edges, and the screening's success bound and p-values were computed with these edges included",
