@@ -37,6 +37,7 @@ use faer::sparse::linalg::solvers::Llt;
 use crate::graph::{Pose2, PoseGraph};
 use crate::tree::SpanningTree;
 
+pub(crate) mod incremental;
 mod system;
 
 pub(crate) use system::{ANCHOR, Anchored, NormalEquations, solve};

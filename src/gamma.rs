@@ -462,18 +462,41 @@ impl Conditioner {
     /// rows appended afterwards — new loops, mostly next to recent ones — short (the idea of
     /// iSAM2's constrained ordering). On error nothing changes.
     pub fn reorder(&mut self, model: &GammaModel, recent: usize) -> Result<(), SingularError> {
-        let mut set: Vec<usize> = self.cycle_at.iter().map(|&c| c as usize).collect();
-        set.sort_unstable();
+        *self = Self::rebuilt(model, &self.determined(), recent)?;
+        Ok(())
+    }
+
+    /// The determined cycles with their values, in determination order.
+    pub fn determined(&self) -> Vec<(usize, i64)> {
+        self.cycle_at
+            .iter()
+            .zip(&self.value)
+            .map(|(&c, &v)| (c as usize, v))
+            .collect()
+    }
+
+    /// A factor of the given determined cycles in a fill-reducing order, with the `recent`
+    /// highest-numbered ones last ([`Self::reorder`]); `model` needs only the rows of those
+    /// cycles, so a snapshot of it can be rebuilt on another thread.
+    pub fn rebuilt(
+        model: &GammaModel,
+        determined: &[(usize, i64)],
+        recent: usize,
+    ) -> Result<Self, SingularError> {
+        let mut sorted = determined.to_vec();
+        sorted.sort_unstable();
+        let set: Vec<usize> = sorted.iter().map(|&(c, _)| c).collect();
         let split = set.len().saturating_sub(recent);
         let mut order = model.fill_reducing_order(&set[..split]);
         order.extend(model.fill_reducing_order(&set[split..]));
         let mut fresh = Conditioner::new();
         for i in order {
-            let v = self.value(i).unwrap_or(0);
+            let v = sorted
+                .binary_search_by_key(&i, |&(c, _)| c)
+                .map_or(0, |p| sorted[p].1);
             fresh.determine(model, i, v)?;
         }
-        *self = fresh;
-        Ok(())
+        Ok(fresh)
     }
 
     /// Conditional means and covariance of the undetermined cycles `set` (dense, row-major

@@ -27,18 +27,22 @@
 //! ambiguous cycles' chords use their most likely integer (the rounded conditional mean).
 
 use serde::Serialize;
+use smallvec::SmallVec;
+
+mod laplacian;
+
+use laplacian::Laplacian;
 
 use crate::batch::{self, BatchResult};
 use crate::cycles::{BasisKind, Cycle, CycleBasis, IncrementalBasis};
-use crate::estimate::{EstimateError, OrientationEstimator};
-use std::collections::{BTreeMap, VecDeque};
+use crate::estimate::EstimateError;
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
-use crate::gamma::{GammaModel, Moments};
+use crate::gamma::{Conditioner, GammaModel, Moments};
 use crate::graph::{Edge, GraphError, Information, NodeId, NodePolicy, Pose2, PoseGraph};
 use crate::screening::{
     ConfigError, Hypothesis, Interval, Screener, ScreeningConfig, rounding_success,
 };
-use crate::wraps::WrapSolver;
 
 /// Settings of the online estimator.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
@@ -147,6 +151,10 @@ pub struct Counters {
     pub rescreens: usize,
     /// Times the factor of P_UU was rebuilt in a fill-reducing order.
     pub reorders: usize,
+    /// Times the orientation factor's order was renewed (built beside the live factor).
+    pub estimate_renewals: usize,
+    /// Steps that had to wait for a renewal's builder thread (0 when it keeps up).
+    pub renewal_waits: usize,
 }
 
 /// Why an input or query was refused. A refused edge leaves the estimator unchanged.
@@ -199,13 +207,39 @@ pub struct OnlineEstimator {
     /// Ambiguous cycles with their conditional moments at their last screening.
     ambiguous: BTreeMap<usize, Moments>,
     counters: Counters,
+    /// The factored orientation system (the estimate read after every step).
+    heads: Laplacian<1>,
+    /// The factored position system (x and y share one Laplacian; see [`Self::pose`]).
+    positions: Laplacian<2>,
+    /// Whether every edge so far has isotropic translation information.
+    isotropic: bool,
+    /// Current best γ of every cycle ([`Self::gamma`]), kept up to date step by step.
+    gamma: Vec<i64>,
+    /// Current wraps of every edge (forward substitution of `gamma` over the cycles).
+    wrap: Vec<i64>,
+    /// The cycle each edge closed (NONE for tree edges).
+    chord_cycle: Vec<u32>,
+    /// For each chord, the later cycles through it (their wraps depend on its wrap).
+    users: Vec<SmallVec<[u32; 2]>>,
+    /// Scratch for [`Self::orientations`].
     theta: Vec<f64>,
-    theta_valid: bool,
-    solver: Option<OrientationEstimator>,
     /// Nonzeros per row of L right after the last reordering.
     fill_after_reorder: f64,
+    /// A renewal of L in progress.
+    renewal: Option<CondRenewal>,
+    /// Steps that waited for a renewal of L.
+    cond_waits: usize,
     /// MCAP recorder, when attached.
     recorder: Option<Box<crate::log::Recorder>>,
+}
+
+/// A renewal of the P_UU factor built beside the live one ([`OnlineEstimator::maybe_reorder`]).
+struct CondRenewal {
+    handle: Option<std::thread::JoinHandle<Option<Conditioner>>>,
+    fresh: Option<Conditioner>,
+    /// Determinations (positions in the live factor's order) replayed into `fresh`.
+    replayed: usize,
+    ready_at: u64,
 }
 
 /// Below this many determined cycles L is never reordered (chronological fill is cheap).
@@ -228,10 +262,17 @@ impl OnlineEstimator {
             screener: Screener::new(),
             ambiguous: BTreeMap::new(),
             counters: Counters::default(),
+            heads: Laplacian::default(),
+            positions: Laplacian::default(),
+            isotropic: true,
+            gamma: Vec::new(),
+            wrap: Vec::new(),
+            chord_cycle: Vec::new(),
+            users: Vec::new(),
             theta: Vec::new(),
-            theta_valid: true,
-            solver: None,
             fill_after_reorder: f64::INFINITY,
+            renewal: None,
+            cond_waits: 0,
             recorder: None,
         })
     }
@@ -306,14 +347,23 @@ impl OnlineEstimator {
         // Cannot fail with CreateUnknown; mapped rather than unwrapped all the same.
         self.graph.add_edge(edge, NodePolicy::CreateUnknown)?;
         let (a, b) = self.graph.endpoints()[e];
+        for _ in nodes_before..self.graph.node_count() {
+            self.heads.add_node();
+            self.positions.add_node();
+        }
         self.sigma2.push(edge.sigma2());
         self.delta.push(edge.delta());
+        self.wrap.push(0);
+        self.chord_cycle.push(NONE);
+        self.users.push(SmallVec::new());
         self.counters.steps += 1;
-        self.solver = None;
         let Some(cycle) = self.basis.add_edge(a, b, edge.sigma2()) else {
             self.counters.tree_edges += 1;
             let new_node = self.graph.node_count() > nodes_before;
-            self.extend_estimate(a, b, nodes_before);
+            self.heads
+                .add_edge(a, b, edge.sigma2().recip(), [edge.delta()]);
+            self.add_position_row(a, b, &edge);
+            self.after_step();
             return Ok(Step {
                 edge: e,
                 kind: StepKind::Tree {
@@ -323,10 +373,16 @@ impl OnlineEstimator {
                 rescreened: Vec::new(),
             });
         };
-        self.theta_valid = false;
         self.counters.cycles += 1;
         let t = self.model.push_cycle(&cycle, &self.sigma2, &self.delta);
+        self.chord_cycle[e] = t as u32;
+        for term in &cycle.terms[1..] {
+            if self.chord_cycle[term.edge as usize] != NONE {
+                self.users[term.edge as usize].push(t as u32);
+            }
+        }
         self.cycles.push(cycle);
+        self.gamma.push(0);
         self.screener.grow(t + 1);
         let cycles = &self.cycles;
         let (m, iv, determined) = self.screener.screen(
@@ -343,6 +399,19 @@ impl OnlineEstimator {
             self.ambiguous.insert(t, m);
         }
         self.refresh_counters();
+        // The new chord's row with its wrap, then the right-hand sides of the chords whose wrap
+        // moved with the re-screened cycles.
+        let changed =
+            self.update_wraps(std::iter::once(t).chain(rescreened.iter().map(|r| r.cycle)));
+        self.heads
+            .add_edge(a, b, edge.sigma2().recip(), [self.wrapped(e)]);
+        for c in changed {
+            if c != e {
+                self.heads.set_y(c, [self.wrapped(c)]);
+            }
+        }
+        self.add_position_row(a, b, &edge);
+        self.after_step();
         Ok(Step {
             edge: e,
             kind: StepKind::Cycle(CycleStep {
@@ -354,6 +423,78 @@ impl OnlineEstimator {
             }),
             rescreened,
         })
+    }
+
+    /// `δ_e − 2π k_e`: the unwrapped measurement of edge e.
+    fn wrapped(&self, e: usize) -> f64 {
+        self.delta[e] - std::f64::consts::TAU * self.wrap[e] as f64
+    }
+
+    /// The position row of a new edge: `p_b − p_a = R(θ_a) t_e`, with θ_a as estimated now
+    /// (after this step's orientation update) and the isotropic part of the translation
+    /// information as weight (exact when it is isotropic).
+    fn add_position_row(&mut self, a: usize, b: usize, edge: &Edge) {
+        let o = edge.information().translation_information();
+        self.isotropic &= o[0][1] == 0.0 && o[0][0] == o[1][1];
+        let theta_a = self.heads.value(a)[0];
+        self.positions.add_edge(
+            a,
+            b,
+            0.5 * (o[0][0] + o[1][1]),
+            rotate(theta_a, edge.measurement()),
+        );
+    }
+
+    /// End of a step: the factors' renewals advance, counters refresh.
+    fn after_step(&mut self) {
+        self.advance_reorder();
+        self.heads.after_step();
+        self.positions.after_step();
+        self.refresh_counters();
+    }
+
+    /// The current best γ of cycle i: its determined value, or the rounded conditional mean
+    /// (clamped to its candidates) of an ambiguous one.
+    fn best_gamma(&self, i: usize) -> i64 {
+        if let Some(v) = self.screener.cond.value(i) {
+            return v;
+        }
+        let iv = self.screener.interval(i);
+        match self.ambiguous.get(&i) {
+            Some(m) => (m.mean.round() as i64).clamp(iv.lo, iv.hi),
+            None => iv.lo,
+        }
+    }
+
+    /// Refresh γ of the given cycles and the wraps that depend on them (forward substitution
+    /// `k_chord = γ_t − Σ_rest ±k_e`, in cycle order, cascading to later cycles through a chord
+    /// whose wrap changed). Returns the edges whose wrap changed.
+    fn update_wraps(&mut self, cycles: impl Iterator<Item = usize>) -> Vec<usize> {
+        let mut work = BTreeSet::new();
+        for c in cycles {
+            let g = self.best_gamma(c);
+            if self.gamma[c] != g || c + 1 == self.gamma.len() {
+                self.gamma[c] = g;
+                work.insert(c);
+            }
+        }
+        let mut changed = Vec::new();
+        while let Some(c) = work.pop_first() {
+            let cyc = &self.cycles[c];
+            let rest = cyc.terms[1..].iter().fold(0i64, |acc, t| {
+                acc.saturating_add(i64::from(t.sign).saturating_mul(self.wrap[t.edge as usize]))
+            });
+            let k = i64::from(cyc.terms[0].sign).saturating_mul(self.gamma[c].saturating_sub(rest));
+            let ch = cyc.chord() as usize;
+            if self.wrap[ch] != k || c + 1 == self.gamma.len() {
+                if self.wrap[ch] != k {
+                    changed.push(ch);
+                }
+                self.wrap[ch] = k;
+                work.extend(self.users[ch].iter().map(|&u| u as usize));
+            }
+        }
+        changed
     }
 
     /// After cycle `first` is determined: re-screen the ambiguous cycles sharing an edge with
@@ -404,10 +545,18 @@ impl OnlineEstimator {
         out.sort_by_key(|x| x.cycle);
     }
 
-    /// Rebuild the factor of P_UU in a fill-reducing order when appending in chronological
-    /// order has made it much denser than a reordered one would be (amortised: its fill per row must
-    /// grow by half first). Conditional moments are unchanged.
+    /// Renew the factor of P_UU in a fill-reducing order when appending in chronological
+    /// order has made it much denser than a reordered one would be (amortised: its fill per
+    /// row must grow by half first). Conditional moments do not depend on the order. The new
+    /// factor is built **beside** the live one on another thread, from a snapshot of the
+    /// determined cycles, collected a fixed number of steps later (a step count, so the run
+    /// is deterministic whatever the threads' timing; a step waits only if the builder is
+    /// still busy then), brought up to date with the determinations made since, a few per
+    /// step, and then swapped in: no step rebuilds the factor.
     fn maybe_reorder(&mut self) {
+        if self.renewal.is_some() {
+            return;
+        }
         let rows = self.screener.cond.len();
         if rows < REORDER_MIN_ROWS {
             return;
@@ -421,35 +570,81 @@ impl OnlineEstimator {
         if per_row <= REORDER_FILL_RATIO * base.max(1.0) {
             return;
         }
-        if self.screener.cond.reorder(&self.model, 0).is_err() {
-            return;
-        }
-        self.fill_after_reorder = self.screener.cond.factor_nnz() as f64 / rows as f64;
-        self.counters.reorders += 1;
+        let determined = self.screener.cond.determined();
+        let model = self.model.clone();
+        let delay = laplacian::MIN_DELAY.max(
+            (self.screener.cond.factor_nnz() as f64 * laplacian::DELAY_PER_ROW) as u64,
+        );
+        let job = move || Conditioner::rebuilt(&model, &determined, 0).ok();
+        let (handle, fresh) = match std::thread::Builder::new()
+            .name("so2lin-reorder".into())
+            .spawn(job)
+        {
+            Ok(h) => (Some(h), None),
+            Err(_) => (
+                None,
+                Conditioner::rebuilt(&self.model, &self.screener.cond.determined(), 0).ok(),
+            ),
+        };
+        self.renewal = Some(CondRenewal {
+            handle,
+            fresh,
+            replayed: rows,
+            ready_at: self.counters.steps as u64 + delay,
+        });
     }
 
-    /// Extend the cached estimate after a tree edge: exact O(1) for a new leaf.
-    fn extend_estimate(&mut self, a: usize, b: usize, nodes_before: usize) {
-        let n = self.graph.node_count();
-        if !self.theta_valid {
+    /// Advance a renewal of the P_UU factor (see [`Self::maybe_reorder`]).
+    fn advance_reorder(&mut self) {
+        let Some(r) = &mut self.renewal else { return };
+        if r.fresh.is_none() {
+            if (self.counters.steps as u64) < r.ready_at {
+                return;
+            }
+            let Some(h) = r.handle.take() else {
+                self.renewal = None;
+                return;
+            };
+            if !h.is_finished() {
+                self.cond_waits += 1;
+            }
+            match h.join() {
+                Ok(Some(f)) => r.fresh = Some(f),
+                _ => {
+                    self.renewal = None;
+                    return;
+                }
+            }
+        }
+        let Some(fresh) = &mut r.fresh else { return };
+        let live = &self.screener.cond;
+        let end = (r.replayed + laplacian::REPLAY_PER_STEP).min(live.len());
+        for &c in &live.order()[r.replayed..end] {
+            let c = c as usize;
+            let v = live.value(c).unwrap_or(0);
+            if fresh.determine(&self.model, c, v).is_err() {
+                self.renewal = None;
+                return;
+            }
+        }
+        r.replayed = end;
+        if r.replayed < live.len() {
             return;
         }
-        let d = *self.delta.last().unwrap_or(&0.0);
-        match (a >= nodes_before, b >= nodes_before) {
-            (false, true) => self.theta.push(self.theta[a] + d),
-            (true, false) => self.theta.push(self.theta[b] - d),
-            // Both new: a new component anchored at a.
-            (true, true) => self.theta.extend([0.0, d]),
-            // Two components joined: the anchor of one changes; recompute on demand.
-            (false, false) => self.theta_valid = false,
-        }
-        debug_assert!(!self.theta_valid || self.theta.len() == n);
+        let Some(fresh) = r.fresh.take() else { return };
+        self.renewal = None;
+        self.screener.cond = fresh;
+        let rows = self.screener.cond.len().max(1);
+        self.fill_after_reorder = self.screener.cond.factor_nnz() as f64 / rows as f64;
+        self.counters.reorders += 1;
     }
 
     fn refresh_counters(&mut self) {
         self.counters.determined = self.screener.cond.len();
         self.counters.ambiguous = self.ambiguous.len();
         self.counters.inconsistent = self.screener.inconsistent_count();
+        self.counters.estimate_renewals = self.heads.renewals + self.positions.renewals;
+        self.counters.renewal_waits = self.heads.waits + self.positions.waits + self.cond_waits;
     }
 
     /// Counters of the run so far.
@@ -475,71 +670,106 @@ impl OnlineEstimator {
     /// Current best γ: determined values, and the rounded conditional mean (clamped to the
     /// candidates) of each ambiguous cycle.
     pub fn gamma(&self) -> Vec<i64> {
-        let mut g: Vec<i64> = (0..self.model.len())
-            .map(|i| self.screener.cond.value(i).unwrap_or(0))
-            .collect();
-        for (&i, m) in &self.ambiguous {
-            let iv = self.screener.interval(i);
-            g[i] = (m.mean.round() as i64).clamp(iv.lo, iv.hi);
-        }
-        g
+        (0..self.model.len()).map(|i| self.best_gamma(i)).collect()
     }
 
-    /// Current best wraps k of every edge (zero on tree edges).
+    /// Current best wraps k of every edge (zero on tree edges): `C k = γ` for [`Self::gamma`].
     pub fn wraps(&self) -> Result<Vec<i64>, OnlineError> {
-        WrapSolver::new(&self.cycles, self.graph.edge_count())
-            .and_then(|s| s.wraps(&self.cycles, &self.gamma()))
-            .map_err(|e| OnlineError::Numerical(e.to_string()))
+        Ok(self.wrap.clone())
     }
 
-    fn ensure_solver(&mut self) -> Result<&OrientationEstimator, OnlineError> {
-        if self.solver.is_none() {
-            self.solver = Some(OrientationEstimator::new(&self.graph)?);
-        }
-        // Just set above when it was missing.
-        self.solver
-            .as_ref()
-            .ok_or_else(|| OnlineError::Numerical("no solver".into()))
-    }
-
-    /// Current orientations of all nodes (dense index order; anchors 0; unwrapped): cached,
-    /// one sparse solve after a new cycle.
+    /// Current orientations of all nodes (dense index order; anchors 0; unwrapped): one
+    /// back-substitution in the maintained factor (no factorisation).
     pub fn orientations(&mut self) -> Result<&[f64], OnlineError> {
-        if !self.theta_valid {
-            let k = self.wraps()?;
-            self.theta = self.ensure_solver()?.orientations(&k);
-            self.theta_valid = true;
-        }
+        self.theta = self.heads.all(0);
         Ok(&self.theta)
     }
 
-    /// Current poses of all nodes (dense index order): the current orientations with their
-    /// least-squares positions ([`OrientationEstimator::poses`]; anchors at the origin).
-    /// Computed on demand: one sparse solve (two, with the orientation system, after a new
-    /// cycle).
-    pub fn poses(&mut self) -> Result<Vec<crate::graph::Pose2>, OnlineError> {
-        let theta = self.orientations()?.to_vec();
-        self.ensure_solver()?;
-        match &self.solver {
-            Some(solver) => Ok(solver.poses(&self.graph, &theta)?),
-            None => Err(OnlineError::Numerical("no solver".into())),
+    /// Current poses of all nodes (dense index order), **exact**: the current orientations
+    /// with their least-squares positions (anchors at the origin), as
+    /// [`OrientationEstimator::poses`](crate::estimate::OrientationEstimator::poses) would
+    /// give. With isotropic translation information (most SLAM data) this re-linearises every
+    /// position row at the current headings in the maintained factor — one forward and one
+    /// back-substitution, no factorisation — and later [`Self::pose`] answers use them;
+    /// otherwise the 2×2-block system is solved from scratch.
+    pub fn poses(&mut self) -> Result<Vec<Pose2>, OnlineError> {
+        let theta = self.heads.all(0);
+        if !self.isotropic {
+            return Ok(crate::estimate::poses(&self.graph, &theta)?);
         }
+        let y = self
+            .graph
+            .endpoints()
+            .iter()
+            .zip(self.graph.edges())
+            .map(|(&(a, _), e)| rotate(theta[a], e.measurement()))
+            .collect();
+        self.positions.reset_y(y);
+        let (x, y) = (self.positions.all(0), self.positions.all(1));
+        Ok((0..theta.len())
+            .map(|v| Pose2::new(x[v], y[v], theta[v]))
+            .collect())
     }
 
-    /// Current orientation of a node (None for an unknown node).
+    /// Current orientation of a node (None for an unknown node): back-substitution along the
+    /// node's path in the factor (O(1) for the newest node).
     pub fn orientation(&mut self, node: NodeId) -> Result<Option<f64>, OnlineError> {
         let Some(v) = self.graph.node_index(node) else {
             return Ok(None);
         };
-        Ok(self.orientations()?.get(v).copied())
+        Ok(Some(self.heads.value(v)[0]))
     }
 
-    /// Marginal variance of a node's orientation (None for an unknown node).
+    /// Current pose of a node (None for an unknown node), read from the maintained factors
+    /// along the node's path (O(1) for the newest node). The heading is exact. The position
+    /// rows use the tail's heading **as estimated when the edge arrived** (or at the last
+    /// [`Self::poses`], which re-linearises them all), and the isotropic part of the
+    /// translation information: like iSAM2 with a re-linearisation threshold, the fast answer
+    /// lags heading corrections that loop closures make to old nodes; [`Self::poses`] is the
+    /// exact answer on demand.
+    pub fn pose(&mut self, node: NodeId) -> Result<Option<Pose2>, OnlineError> {
+        let Some(v) = self.graph.node_index(node) else {
+            return Ok(None);
+        };
+        let [x, y] = self.positions.value(v);
+        Ok(Some(Pose2::new(x, y, self.heads.value(v)[0])))
+    }
+
+    /// The newest node (the last one an edge created) and its pose ([`Self::pose`]).
+    pub fn newest(&mut self) -> Result<Option<(NodeId, Pose2)>, OnlineError> {
+        let Some(node) = self.graph.nodes().last().map(|n| n.id) else {
+            return Ok(None);
+        };
+        Ok(self.pose(node)?.map(|p| (node, p)))
+    }
+
+    /// All poses as `(node id, pose)` pairs, exact ([`Self::poses`]).
+    pub fn poses_by_id(&mut self) -> Result<Vec<(NodeId, Pose2)>, OnlineError> {
+        let poses = self.poses()?;
+        Ok(self.graph.nodes().iter().map(|n| n.id).zip(poses).collect())
+    }
+
+    /// Marginal variance of a node's orientation relative to its component's anchor (None
+    /// for an unknown node): one forward solve in the maintained factor.
     pub fn variance(&mut self, node: NodeId) -> Result<Option<f64>, OnlineError> {
         let Some(v) = self.graph.node_index(node) else {
             return Ok(None);
         };
-        Ok(Some(self.ensure_solver()?.variance(v)))
+        Ok(Some(self.heads.variance(v)))
+    }
+
+    /// Marginal covariance of a node's pose `(x, y, θ)` relative to its component's anchor,
+    /// from the maintained factors (None for an unknown node). The positions are conditioned
+    /// on the headings (the linear estimate's model), so the covariance is block-diagonal: the
+    /// position block `σ²_p I` from the position factor (isotropic weights), `σ²_θ` from the
+    /// orientation factor.
+    pub fn covariance(&mut self, node: NodeId) -> Result<Option<[[f64; 3]; 3]>, OnlineError> {
+        let Some(v) = self.graph.node_index(node) else {
+            return Ok(None);
+        };
+        let p = self.positions.variance(v);
+        let t = self.heads.variance(v);
+        Ok(Some([[p, 0.0, 0.0], [0.0, p, 0.0], [0.0, 0.0, t]]))
     }
 
     /// Integer-bootstrapping lower bound on the probability that the current γ is right:
@@ -592,6 +822,33 @@ impl OnlineEstimator {
     }
 }
 
+/// No cycle.
+const NONE: u32 = u32::MAX;
+
+/// `R(θ) t`: a relative translation in the world frame of a tail with heading θ.
+fn rotate(theta: f64, z: Pose2) -> [f64; 2] {
+    let (s, c) = theta.sin_cos();
+    [c * z.x - s * z.y, s * z.x + c * z.y]
+}
+
 fn edges_of(c: &Cycle) -> Vec<usize> {
     c.terms.iter().map(|t| t.edge as usize).collect()
+}
+
+/// The edges in **robot order**: a robot produces an edge when its later node appears, so the
+/// edges are stably sorted by the first appearance (in the given order) of the later of their
+/// two nodes. Files that list all odometry first and every loop closure after (M3500) are
+/// streamed as a robot would have produced them; a file already in robot order is unchanged.
+pub fn robot_order(edges: &[Edge]) -> Vec<Edge> {
+    let mut first: BTreeMap<NodeId, usize> = BTreeMap::new();
+    for e in edges {
+        for n in [e.from(), e.to()] {
+            let next = first.len();
+            first.entry(n).or_insert(next);
+        }
+    }
+    let key = |e: &Edge| first[&e.from()].max(first[&e.to()]);
+    let mut out = edges.to_vec();
+    out.sort_by_key(key);
+    out
 }

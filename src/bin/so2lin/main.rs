@@ -310,9 +310,16 @@ enum Command {
         /// Record every step to this MCAP log.
         #[arg(long)]
         log: Option<PathBuf>,
+        /// Order in which edges reach the estimator: as a robot produces them (an edge when
+        /// its later node appears) or as the file lists them.
+        #[arg(long, value_enum, default_value = "robot")]
+        order: stream::EdgeOrder,
+        /// What is read after every step (inside the measured latency).
+        #[arg(long, value_enum, default_value = "newest")]
+        estimate: stream::EstimateQuery,
         /// Information-matrix order of edge lines (default: detect).
         #[arg(long, value_enum, default_value = "auto")]
-        order: OrderArg,
+        info_order: OrderArg,
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
@@ -405,6 +412,8 @@ fn main() -> ExitCode {
             orientations,
             log,
             order,
+            estimate,
+            info_order,
             json,
         } => {
             let config = OnlineConfig {
@@ -412,7 +421,9 @@ fn main() -> ExitCode {
             };
             stream::run(stream::StreamArgs {
                 file: &file,
-                order: order.into(),
+                info_order: info_order.into(),
+                edge_order: order,
+                estimate,
                 config,
                 orientations: orientations.as_deref(),
                 log: log.as_deref(),

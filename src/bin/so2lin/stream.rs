@@ -8,12 +8,36 @@ use serde_json::{Value, json};
 use so2lin::estimate::OrientationEstimator;
 use so2lin::io::{InfoOrder, Reader};
 use so2lin::log::{LogOptions, Recorder};
-use so2lin::online::{OnlineConfig, OnlineEstimator, StepKind};
+use so2lin::online::{OnlineConfig, OnlineEstimator, StepKind, robot_order};
+
+/// In which order the edges reach the estimator.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EdgeOrder {
+    /// As a robot produces them: an edge arrives when its later node appears.
+    Robot,
+    /// As the file lists them.
+    File,
+}
+
+/// What the robot reads after every step (its cost is inside the step's latency).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EstimateQuery {
+    /// Nothing.
+    None,
+    /// The newest node's pose.
+    Newest,
+    /// Every node's exact pose.
+    All,
+}
 
 /// Options of the `stream` command.
 pub struct StreamArgs<'a> {
     pub file: &'a Path,
-    pub order: InfoOrder,
+    pub info_order: InfoOrder,
+    pub edge_order: EdgeOrder,
+    pub estimate: EstimateQuery,
     pub config: OnlineConfig,
     pub orientations: Option<&'a Path>,
     pub log: Option<&'a Path>,
@@ -63,22 +87,39 @@ pub fn peak_rss_bytes() -> Option<u64> {
 pub fn run(args: StreamArgs) -> Result<(), String> {
     let start = Instant::now();
     let mut est = OnlineEstimator::new(args.config).map_err(|e| e.to_string())?;
-    let mut reader = Reader::open(args.file, args.order).map_err(|e| e.to_string())?;
+    let mut reader = Reader::open(args.file, args.info_order).map_err(|e| e.to_string())?;
+    let edges: Vec<_> = reader
+        .edges()
+        .collect::<Result<_, _>>()
+        .map_err(|e| e.to_string())?;
+    let edges = match args.edge_order {
+        EdgeOrder::Robot => robot_order(&edges),
+        EdgeOrder::File => edges,
+    };
     if let Some(path) = args.log {
         let source = args.file.display().to_string();
         let rec = Recorder::create(path, &args.config, &source, LogOptions::default())
             .map_err(|e| e.to_string())?;
         est.attach_recorder(rec);
     }
-    let bar = crate::progress_bar(
-        std::fs::metadata(args.file).map(|m| m.len()).unwrap_or(0),
-        "streaming",
-    );
+    let bar = crate::progress_bar(edges.len() as u64 * 64, "streaming");
     let (mut all, mut tree, mut cyc) = (Vec::new(), Vec::new(), Vec::new());
-    for edge in reader.edges() {
-        let edge = edge.map_err(|e| e.to_string())?;
+    let mut sink = 0.0;
+    for &edge in &edges {
         let t = Instant::now();
         let step = est.add_edge(edge).map_err(|e| e.to_string())?;
+        match args.estimate {
+            EstimateQuery::None => {}
+            EstimateQuery::Newest => {
+                if let Some((_, p)) = est.newest().map_err(|e| e.to_string())? {
+                    sink += p.x;
+                }
+            }
+            EstimateQuery::All => {
+                let poses = est.poses().map_err(|e| e.to_string())?;
+                sink += poses.last().map_or(0.0, |p| p.x);
+            }
+        }
         let ns = t.elapsed().as_nanos() as u64;
         all.push(ns);
         match step.kind {
@@ -90,6 +131,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         }
     }
     bar.finish_and_clear();
+    std::hint::black_box(sink);
     if let Some(rec) = est.detach_recorder() {
         rec.finish(&mut est).map_err(|e| e.to_string())?;
     }
@@ -119,6 +161,10 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         let v = json!({
             "file": args.file.display().to_string(),
             "config": args.config,
+            "edge_order": args.edge_order,
+            "estimate": args.estimate,
+            "estimate_renewals": c.estimate_renewals,
+            "renewal_waits": c.renewal_waits,
             "steps": c.steps,
             "nodes": est.graph().node_count(),
             "cycles": c.cycles,
@@ -147,7 +193,17 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         c.cycles,
         est.graph().node_count()
     );
-    println!("latency per add_edge (µs)     p50       p90       p99       max      mean");
+    let read = match args.estimate {
+        EstimateQuery::None => "no estimate read",
+        EstimateQuery::Newest => "the newest pose read after every step",
+        EstimateQuery::All => "every pose read after every step",
+    };
+    let order = match args.edge_order {
+        EdgeOrder::Robot => "robot order",
+        EdgeOrder::File => "file order",
+    };
+    println!("latency per step in µs ({order}, {read}):");
+    println!("                              p50       p90       p99     worst      mean");
     for (name, l) in &lat {
         println!(
             "  {name:<6} ({:>6} steps) {:>9.2} {:>9.2} {:>9.2} {:>9.2} {:>9.2}",
@@ -155,8 +211,8 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         );
     }
     println!(
-        "online: {} determined, {} ambiguous, {} inconsistent, {} re-screens, {} factor reorders",
-        c.determined, c.ambiguous, c.inconsistent, c.rescreens, c.reorders
+        "online: {} determined, {} ambiguous, {} inconsistent, {} re-screens, {} factor reorders, {} estimate renewals ({} steps waited for one)",
+        c.determined, c.ambiguous, c.inconsistent, c.rescreens, c.reorders, c.estimate_renewals, c.renewal_waits
     );
     println!(
         "finish: {} determined, {} ambiguous, {} hypotheses ({:?})",

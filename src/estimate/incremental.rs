@@ -1,0 +1,608 @@
+//! An incremental square-root information solver: the factor a robot keeps between steps.
+//!
+//! A linear least-squares problem `min Σ_r (a_rᵀ x − b_r)²` (rows `a_r` sparse, `K`
+//! right-hand sides) is kept as `R x = d` with R upper triangular (`RᵀR = AᵀA`,
+//! `Rᵀd = Aᵀb`) in a variable order of our choosing, one row of R per variable:
+//!
+//! - **a new row** `(a, β)` is rotated into R by Givens rotations
+//!   (`ρ = hypot(R_kk, w_k)`, `c = R_kk/ρ`, `s = w_k/ρ`; `R_k ← c R_k + s w`, `w ← c w − s R_k`,
+//!   and likewise `d_k`, `β`) along the elimination-tree path from the row's first variable to
+//!   the root: a row near the end of the order touches a few rows of R only;
+//! - **a removed row** is the same with hyperbolic rotations (`ρ = sqrt(R_kk² − w_k²)`);
+//! - **a changed right-hand side** of a row (a wrap that changed) moves d only:
+//!   `d ← d + R⁻ᵀ a Δβ`, one sparse forward solve along the same path;
+//! - **a new variable** is appended at the end of the order with an empty row.
+//!
+//! Reading: `x = R⁻¹ d` by back-substitution. The last variable is `d_n / R_nn` (O(1)); one
+//! variable costs its elimination-tree path to the root; all of them one back-substitution.
+//! A marginal variance is `‖R⁻ᵀ e_v‖²` (one forward solve along the path). Nothing here ever
+//! factors a matrix from scratch: [`SqrtInfo::rebuild`] (a fill-reducing order) is the same row
+//! rotation applied to every row, and the owner runs it beside the live factor.
+//!
+//! Written by hand because no maintained crate offers a sparse QR/Cholesky factor that can be
+//! grown, down-dated and read in place one row at a time (faer's sparse Cholesky refactors).
+
+/// No position (variable unknown).
+const NONE: u32 = u32::MAX;
+
+/// The removed row made the factor indefinite: it was not (numerically) part of the problem.
+#[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
+#[error("removing a row made the information matrix indefinite (position {position})")]
+pub(crate) struct Indefinite {
+    /// Position of the failing pivot.
+    pub position: usize,
+}
+
+/// `R x = d` with `K` right-hand sides (see the module docs).
+#[derive(Clone, Debug)]
+pub(crate) struct SqrtInfo<const K: usize> {
+    pos_of: Vec<u32>,
+    var_at: Vec<u32>,
+    diag: Vec<f64>,
+    /// Off-diagonal entries of each row of R: `(position, value)`, positions ascending and
+    /// greater than the row's own.
+    rows: Vec<Vec<(u32, f64)>>,
+    d: Vec<[f64; K]>,
+    nnz: usize,
+    // Scratch (kept to avoid allocations per step).
+    w: Vec<(u32, f64)>,
+    w_next: Vec<(u32, f64)>,
+    spare_row: Vec<(u32, f64)>,
+    x: Vec<f64>,
+    path: Vec<u32>,
+}
+
+impl<const K: usize> Default for SqrtInfo<K> {
+    fn default() -> Self {
+        Self {
+            pos_of: Vec::new(),
+            var_at: Vec::new(),
+            diag: Vec::new(),
+            rows: Vec::new(),
+            d: Vec::new(),
+            nnz: 0,
+            w: Vec::new(),
+            w_next: Vec::new(),
+            spare_row: Vec::new(),
+            x: Vec::new(),
+            path: Vec::new(),
+        }
+    }
+}
+
+impl<const K: usize> SqrtInfo<K> {
+    /// No variables.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Number of variables.
+    pub fn len(&self) -> usize {
+        self.diag.len()
+    }
+
+    /// Nonzeros of R (diagonal included).
+    pub fn nnz(&self) -> usize {
+        self.nnz + self.diag.len()
+    }
+
+    /// Append variable `v` (the next unused id is expected, but any id works) at the end of the
+    /// order, with an empty row.
+    pub fn push_variable(&mut self, v: usize) {
+        if self.pos_of.len() <= v {
+            self.pos_of.resize(v + 1, NONE);
+        }
+        self.pos_of[v] = self.var_at.len() as u32;
+        self.var_at.push(v as u32);
+        self.diag.push(0.0);
+        self.rows.push(Vec::new());
+        self.d.push([0.0; K]);
+        self.x.push(0.0);
+    }
+
+    fn load(&mut self, entries: &[(usize, f64)]) {
+        self.w.clear();
+        for &(v, a) in entries {
+            let p = self.pos_of[v];
+            debug_assert!(p != NONE, "unknown variable {v}");
+            match self.w.iter_mut().find(|(q, _)| *q == p) {
+                Some(e) => e.1 += a,
+                None => self.w.push((p, a)),
+            }
+        }
+        self.w.sort_unstable_by_key(|&(p, _)| p);
+    }
+
+    /// Add the row `Σ a_v x_v = β` (Givens rotations).
+    pub fn add_row(&mut self, entries: &[(usize, f64)], beta: [f64; K]) {
+        self.load(entries);
+        // Cannot fail for an update.
+        let _ = self.rotate(beta, false);
+    }
+
+    /// Remove a row previously added (hyperbolic rotations). On failure the factor is left
+    /// partly updated; the owner rebuilds it.
+    pub fn remove_row(
+        &mut self,
+        entries: &[(usize, f64)],
+        beta: [f64; K],
+    ) -> Result<(), Indefinite> {
+        self.load(entries);
+        self.rotate(beta, true)
+    }
+
+    /// Rotate the row in `self.w` (positions) with right-hand side `beta` into R.
+    fn rotate(&mut self, mut beta: [f64; K], downdate: bool) -> Result<(), Indefinite> {
+        let mut w = std::mem::take(&mut self.w);
+        let mut next = std::mem::take(&mut self.w_next);
+        let mut head = 0;
+        let result = loop {
+            while head < w.len() && w[head].1 == 0.0 {
+                head += 1;
+            }
+            if head >= w.len() {
+                break Ok(());
+            }
+            let (k, wk) = w[head];
+            let k = k as usize;
+            let r = self.diag[k];
+            let (c, s, rho) = if downdate {
+                let rho2 = r * r - wk * wk;
+                if rho2 <= 0.0 || !rho2.is_finite() {
+                    break Err(Indefinite { position: k });
+                }
+                let rho = rho2.sqrt();
+                (rho / r, wk / r, rho)
+            } else {
+                let rho = r.hypot(wk);
+                (r / rho, wk / rho, rho)
+            };
+            self.diag[k] = rho;
+            let old = std::mem::take(&mut self.rows[k]);
+            let mut row = std::mem::take(&mut self.spare_row);
+            row.clear();
+            next.clear();
+            let (mut i, mut j) = (0, head + 1);
+            while i < old.len() || j < w.len() {
+                let (p, rkj, wj) = match (old.get(i), w.get(j)) {
+                    (Some(&(pa, a)), Some(&(pb, b))) if pa == pb => {
+                        i += 1;
+                        j += 1;
+                        (pa, a, b)
+                    }
+                    (Some(&(pa, a)), Some(&(pb, _))) if pa < pb => {
+                        i += 1;
+                        (pa, a, 0.0)
+                    }
+                    (Some(_), Some(&(pb, b))) => {
+                        j += 1;
+                        (pb, 0.0, b)
+                    }
+                    (Some(&(pa, a)), None) => {
+                        i += 1;
+                        (pa, a, 0.0)
+                    }
+                    (None, Some(&(pb, b))) => {
+                        j += 1;
+                        (pb, 0.0, b)
+                    }
+                    (None, None) => unreachable!(),
+                };
+                let (rn, wn) = if downdate {
+                    let rn = (rkj - s * wj) / c;
+                    (rn, c * wj - s * rn)
+                } else {
+                    (c * rkj + s * wj, c * wj - s * rkj)
+                };
+                row.push((p, rn));
+                if wn != 0.0 {
+                    next.push((p, wn));
+                }
+            }
+            let dk = &mut self.d[k];
+            for q in 0..K {
+                if downdate {
+                    let dn = (dk[q] - s * beta[q]) / c;
+                    beta[q] = c * beta[q] - s * dn;
+                    dk[q] = dn;
+                } else {
+                    let dn = c * dk[q] + s * beta[q];
+                    beta[q] = c * beta[q] - s * dk[q];
+                    dk[q] = dn;
+                }
+            }
+            self.nnz = self.nnz + row.len() - old.len();
+            self.rows[k] = row;
+            self.spare_row = old;
+            std::mem::swap(&mut w, &mut next);
+            head = 0;
+        };
+        self.w = w;
+        self.w_next = next;
+        result
+    }
+
+    /// Change the right-hand side of an existing row `a` by `Δβ`: `d ← d + R⁻ᵀ a Δβ`.
+    pub fn shift_rhs(&mut self, entries: &[(usize, f64)], delta: [f64; K]) {
+        self.load(entries);
+        // Forward solve Rᵀ y = a on the positions reached (the etree path), in increasing order.
+        let mut w = std::mem::take(&mut self.w);
+        let mut next = std::mem::take(&mut self.w_next);
+        let mut head = 0;
+        loop {
+            while head < w.len() && w[head].1 == 0.0 {
+                head += 1;
+            }
+            if head >= w.len() {
+                break;
+            }
+            let (k, ak) = w[head];
+            let k = k as usize;
+            let y = ak / self.diag[k];
+            for q in 0..K {
+                self.d[k][q] += y * delta[q];
+            }
+            // a_j -= R_kj y for j in row k, merged with the rest of w.
+            next.clear();
+            let row = &self.rows[k];
+            let (mut i, mut j) = (0, head + 1);
+            while i < row.len() || j < w.len() {
+                let (p, v) = match (row.get(i), w.get(j)) {
+                    (Some(&(pa, a)), Some(&(pb, b))) if pa == pb => {
+                        i += 1;
+                        j += 1;
+                        (pa, b - a * y)
+                    }
+                    (Some(&(pa, a)), Some(&(pb, _))) if pa < pb => {
+                        i += 1;
+                        (pa, -a * y)
+                    }
+                    (Some(_), Some(&(pb, b))) => {
+                        j += 1;
+                        (pb, b)
+                    }
+                    (Some(&(pa, a)), None) => {
+                        i += 1;
+                        (pa, -a * y)
+                    }
+                    (None, Some(&(pb, b))) => {
+                        j += 1;
+                        (pb, b)
+                    }
+                    (None, None) => unreachable!(),
+                };
+                if v != 0.0 {
+                    next.push((p, v));
+                }
+            }
+            std::mem::swap(&mut w, &mut next);
+            head = 0;
+        }
+        self.w = w;
+        self.w_next = next;
+    }
+
+    /// Every variable's value, indexed by variable (one back-substitution).
+    pub fn solve(&self, rhs: usize) -> Vec<f64> {
+        let n = self.len();
+        let mut x = vec![0.0; n];
+        for p in (0..n).rev() {
+            let s: f64 = self.rows[p].iter().map(|&(j, v)| v * x[j as usize]).sum();
+            x[p] = (self.d[p][rhs] - s) / self.diag[p];
+        }
+        let mut out = vec![0.0; self.pos_of.len()];
+        for (p, &v) in self.var_at.iter().enumerate() {
+            out[v as usize] = x[p];
+        }
+        out
+    }
+
+    /// One variable's value for every right-hand side: back-substitution along its
+    /// elimination-tree path (O(1) for the last variable).
+    pub fn value(&mut self, v: usize) -> [f64; K] {
+        let p = self.pos_of[v] as usize;
+        self.path.clear();
+        let mut k = p;
+        loop {
+            self.path.push(k as u32);
+            match self.rows[k].first() {
+                Some(&(parent, _)) => k = parent as usize,
+                None => break,
+            }
+        }
+        let mut out = [0.0; K];
+        for (q, o) in out.iter_mut().enumerate() {
+            for &k in self.path.iter().rev() {
+                let k = k as usize;
+                let s: f64 = self.rows[k]
+                    .iter()
+                    .map(|&(j, a)| a * self.x[j as usize])
+                    .sum();
+                self.x[k] = (self.d[k][q] - s) / self.diag[k];
+            }
+            *o = self.x[p];
+        }
+        out
+    }
+
+    /// Variance of the combination `aᵀx`: `aᵀ(AᵀA)⁻¹a = ‖R⁻ᵀ a‖²` (one forward solve along
+    /// the paths of a's variables; `a = e_v` gives a marginal variance).
+    pub fn marginal(&mut self, entries: &[(usize, f64)]) -> f64 {
+        self.load(entries);
+        let mut w = std::mem::take(&mut self.w);
+        let mut next = std::mem::take(&mut self.w_next);
+        let mut sum = 0.0;
+        let mut head = 0;
+        while head < w.len() {
+            let (k, ak) = w[head];
+            let k = k as usize;
+            let y = ak / self.diag[k];
+            sum += y * y;
+            next.clear();
+            let row = &self.rows[k];
+            let (mut i, mut j) = (0, head + 1);
+            while i < row.len() || j < w.len() {
+                let (p, val) = match (row.get(i), w.get(j)) {
+                    (Some(&(pa, a)), Some(&(pb, b))) if pa == pb => {
+                        i += 1;
+                        j += 1;
+                        (pa, b - a * y)
+                    }
+                    (Some(&(pa, a)), Some(&(pb, _))) if pa < pb => {
+                        i += 1;
+                        (pa, -a * y)
+                    }
+                    (Some(_), Some(&(pb, b))) => {
+                        j += 1;
+                        (pb, b)
+                    }
+                    (Some(&(pa, a)), None) => {
+                        i += 1;
+                        (pa, -a * y)
+                    }
+                    (None, Some(&(pb, b))) => {
+                        j += 1;
+                        (pb, b)
+                    }
+                    (None, None) => unreachable!(),
+                };
+                if val != 0.0 {
+                    next.push((p, val));
+                }
+            }
+            std::mem::swap(&mut w, &mut next);
+            head = 0;
+        }
+        self.w = w;
+        self.w_next = next;
+        sum
+    }
+
+    /// Recompute d from scratch for the rows given (`Rᵀ d = Σ_r a_r β_r`): one forward solve.
+    /// Resynchronises d after many right-hand-side shifts.
+    pub fn reset_rhs<const N: usize>(
+        &mut self,
+        rows: impl IntoIterator<Item = ([(usize, f64); N], [f64; K])>,
+    ) {
+        let n = self.len();
+        let mut g = vec![[0.0; K]; n];
+        for (entries, beta) in rows {
+            for (v, a) in entries {
+                let p = self.pos_of[v] as usize;
+                for q in 0..K {
+                    g[p][q] += a * beta[q];
+                }
+            }
+        }
+        for k in 0..n {
+            let mut dk = g[k];
+            for v in dk.iter_mut() {
+                *v /= self.diag[k];
+            }
+            for &(j, a) in &self.rows[k] {
+                for q in 0..K {
+                    g[j as usize][q] -= a * dk[q];
+                }
+            }
+            self.d[k] = dk;
+        }
+    }
+}
+
+/// A fill-reducing order of the variables `0..n` of a graph with the given edges (approximate
+/// minimum degree, faer), with the variables in `last` appended at the end in that order.
+pub(crate) fn fill_reducing_order(
+    n: usize,
+    edges: &[(usize, usize)],
+    last: &[usize],
+) -> Vec<usize> {
+    use faer::dyn_stack::{MemBuffer, MemStack};
+    use faer::sparse::SymbolicSparseColMatRef;
+    use faer::sparse::linalg::amd;
+    let mut is_last = vec![false; n];
+    for &v in last {
+        is_last[v] = true;
+    }
+    let mut local = vec![usize::MAX; n];
+    let mut free = Vec::new();
+    for v in 0..n {
+        if !is_last[v] {
+            local[v] = free.len();
+            free.push(v);
+        }
+    }
+    let k = free.len();
+    let mut adj: Vec<Vec<usize>> = vec![Vec::new(); k];
+    for &(a, b) in edges {
+        let (la, lb) = (local[a], local[b]);
+        if la != usize::MAX && lb != usize::MAX && la != lb {
+            adj[la].push(lb);
+            adj[lb].push(la);
+        }
+    }
+    let mut col_ptr = Vec::with_capacity(k + 1);
+    let mut row_idx = Vec::new();
+    col_ptr.push(0usize);
+    for (c, list) in adj.iter_mut().enumerate() {
+        list.push(c);
+        list.sort_unstable();
+        list.dedup();
+        row_idx.extend_from_slice(list);
+        col_ptr.push(row_idx.len());
+    }
+    let pattern = SymbolicSparseColMatRef::new_checked(k, k, &col_ptr, None, &row_idx);
+    let (mut perm, mut perm_inv) = (vec![0usize; k], vec![0usize; k]);
+    let mut mem = MemBuffer::new(amd::order_scratch::<usize>(k, row_idx.len()));
+    let mut order: Vec<usize> = match amd::order(
+        &mut perm,
+        &mut perm_inv,
+        pattern,
+        amd::Control::default(),
+        MemStack::new(&mut mem),
+    ) {
+        Ok(_) => perm.iter().map(|&p| free[p]).collect(),
+        Err(_) => free.clone(),
+    };
+    order.extend_from_slice(last);
+    order
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Dense normal equations and their solution, for checking.
+    fn dense(n: usize, rows: &[(Vec<(usize, f64)>, f64)]) -> (Vec<Vec<f64>>, Vec<f64>) {
+        let mut h = vec![vec![0.0; n]; n];
+        let mut g = vec![0.0; n];
+        for (a, b) in rows {
+            for &(i, x) in a {
+                g[i] += x * b;
+                for &(j, y) in a {
+                    h[i][j] += x * y;
+                }
+            }
+        }
+        // Gaussian elimination (SPD, no pivoting needed).
+        let mut m = h.clone();
+        let mut x = g.clone();
+        for k in 0..n {
+            for i in k + 1..n {
+                let f = m[i][k] / m[k][k];
+                for j in k..n {
+                    m[i][j] -= f * m[k][j];
+                }
+                x[i] -= f * x[k];
+            }
+        }
+        for k in (0..n).rev() {
+            let s: f64 = (k + 1..n).map(|j| m[k][j] * x[j]).sum();
+            x[k] = (x[k] - s) / m[k][k];
+        }
+        let inv_diag = (0..n)
+            .map(|v| {
+                let mut e = vec![0.0; n];
+                e[v] = 1.0;
+                let mut m = h.clone();
+                for k in 0..n {
+                    for i in k + 1..n {
+                        let f = m[i][k] / m[k][k];
+                        for j in k..n {
+                            m[i][j] -= f * m[k][j];
+                        }
+                        e[i] -= f * e[k];
+                    }
+                }
+                for k in (0..n).rev() {
+                    let s: f64 = (k + 1..n).map(|j| m[k][j] * e[j]).sum();
+                    e[k] = (e[k] - s) / m[k][k];
+                }
+                e[v]
+            })
+            .collect();
+        (vec![inv_diag], x)
+    }
+
+    fn lcg(state: &mut u64) -> f64 {
+        *state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((*state >> 11) as f64) / ((1u64 << 53) as f64)
+    }
+
+    /// Growing, down-dating and shifting agree with dense normal equations.
+    #[test]
+    fn incremental_rows_match_dense_least_squares() {
+        let mut s = 7u64;
+        let n = 30;
+        let mut f = SqrtInfo::<1>::new();
+        // A shuffled order of variables.
+        let mut vars: Vec<usize> = (0..n).collect();
+        for i in (1..n).rev() {
+            let j = (lcg(&mut s) * (i + 1) as f64) as usize;
+            vars.swap(i, j);
+        }
+        for &v in &vars {
+            f.push_variable(v);
+        }
+        let mut rows: Vec<(Vec<(usize, f64)>, f64)> = Vec::new();
+        // A prior on variable 0 and a chain, then random extra rows.
+        rows.push((vec![(0, 1.0)], 0.0));
+        for v in 1..n {
+            let w = 0.5 + lcg(&mut s);
+            rows.push((vec![(v - 1, -w), (v, w)], lcg(&mut s) - 0.5));
+        }
+        for _ in 0..40 {
+            let a = (lcg(&mut s) * n as f64) as usize;
+            let b = (lcg(&mut s) * n as f64) as usize;
+            if a != b {
+                let w = 0.5 + lcg(&mut s);
+                rows.push((vec![(a, -w), (b, w)], 3.0 * (lcg(&mut s) - 0.5)));
+            }
+        }
+        for (a, b) in &rows {
+            f.add_row(a, [*b]);
+        }
+        let check = |f: &mut SqrtInfo<1>, rows: &[(Vec<(usize, f64)>, f64)]| {
+            let (var, x) = dense(n, rows);
+            let all = f.solve(0);
+            for v in 0..n {
+                assert!((all[v] - x[v]).abs() < 1e-9, "{v}: {} vs {}", all[v], x[v]);
+                assert!((f.value(v)[0] - x[v]).abs() < 1e-9);
+                assert!((f.marginal(&[(v, 1.0)]) - var[0][v]).abs() < 1e-9);
+            }
+        };
+        check(&mut f, &rows);
+        // Shift the right-hand side of a row.
+        let (a, b) = rows[35].clone();
+        f.shift_rhs(&a, [0.7]);
+        rows[35].1 = b + 0.7;
+        check(&mut f, &rows);
+        // Remove a row.
+        let (a, b) = rows.remove(40);
+        f.remove_row(&a, [b]).unwrap();
+        check(&mut f, &rows);
+        // Recompute d from the rows: same solution.
+        let pad = |a: &Vec<(usize, f64)>| match a.as_slice() {
+            [x] => [*x, (x.0, 0.0)],
+            [x, y, ..] => [*x, *y],
+            [] => [(0, 0.0); 2],
+        };
+        f.reset_rhs(rows.iter().map(|(a, b)| (pad(a), [*b])));
+        check(&mut f, &rows);
+    }
+
+    #[test]
+    fn fill_reducing_order_is_a_permutation_with_last_at_the_end() {
+        let edges: Vec<(usize, usize)> = (1..50)
+            .map(|v| (v - 1, v))
+            .chain([(0, 49), (10, 30)])
+            .collect();
+        let o = fill_reducing_order(50, &edges, &[49]);
+        assert_eq!(o.len(), 50);
+        assert_eq!(*o.last().unwrap(), 49);
+        let mut s = o.clone();
+        s.sort_unstable();
+        assert_eq!(s, (0..50).collect::<Vec<_>>());
+    }
+}
