@@ -572,9 +572,8 @@ impl OnlineEstimator {
         }
         let determined = self.screener.cond.determined();
         let model = self.model.clone();
-        let delay = laplacian::MIN_DELAY.max(
-            (self.screener.cond.factor_nnz() as f64 * laplacian::DELAY_PER_ROW) as u64,
-        );
+        let delay = laplacian::MIN_DELAY
+            .max((self.screener.cond.factor_nnz() as f64 * laplacian::DELAY_PER_ROW) as u64);
         let job = move || Conditioner::rebuilt(&model, &determined, 0).ok();
         let (handle, fresh) = match std::thread::Builder::new()
             .name("so2lin-reorder".into())

@@ -200,7 +200,7 @@ fn robot_order_sorts_by_the_later_node() {
 
 #[test]
 fn datasets_in_robot_order_match_the_batch_estimate() {
-    for name in ["INTEL.g2o", "M3500.g2o"] {
+    for name in ["intel.g2o", "M3500.g2o"] {
         let Some(path) = common::dataset(name) else {
             return;
         };
@@ -208,7 +208,7 @@ fn datasets_in_robot_order_match_the_batch_estimate() {
         let edges: Vec<Edge> = r.edges().collect::<Result<_, _>>().unwrap();
         let edges = robot_order(&edges);
         // Every loop closure of INTEL; every 25th of M3500 (a batch factorisation each).
-        let every = if name == "INTEL.g2o" { 1 } else { 25 };
+        let every = if name == "intel.g2o" { 1 } else { 25 };
         stream_and_compare(name, &edges, |i, cycle| cycle && i % every == 0);
     }
 }

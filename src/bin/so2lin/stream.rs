@@ -212,7 +212,13 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     }
     println!(
         "online: {} determined, {} ambiguous, {} inconsistent, {} re-screens, {} factor reorders, {} estimate renewals ({} steps waited for one)",
-        c.determined, c.ambiguous, c.inconsistent, c.rescreens, c.reorders, c.estimate_renewals, c.renewal_waits
+        c.determined,
+        c.ambiguous,
+        c.inconsistent,
+        c.rescreens,
+        c.reorders,
+        c.estimate_renewals,
+        c.renewal_waits
     );
     println!(
         "finish: {} determined, {} ambiguous, {} hypotheses ({:?})",
