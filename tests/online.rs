@@ -26,11 +26,7 @@ fn compare(name: &str, graph: &PoseGraph, edges: &[Edge], cfg: ScreeningConfig) 
         },
     )
     .unwrap();
-    let mut est = OnlineEstimator::new(OnlineConfig {
-        screening: cfg,
-        ..Default::default()
-    })
-    .unwrap();
+    let mut est = OnlineEstimator::new(OnlineConfig { screening: cfg }).unwrap();
     for e in edges {
         est.add_edge(*e).unwrap();
     }

@@ -752,10 +752,11 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
         let baseline =
             so2lin::refine::refine(&world.graph, &odometry, &refine).map_err(|e| e.to_string())?;
         println!(
-            "poses: SE(2) cost {:.1} (linear) → {:.1} after {} refinement iterations ({:.1} ms); the same refinement from odometry: {:.1} → {:.1}",
+            "poses: SE(2) cost {:.1} (linear) → {:.1} after {} refinement iterations, {} ({:.1} ms); the same refinement from odometry: {:.1} → {:.1}",
             s.cost_linear,
             s.refined.cost(),
             s.refined.iterations,
+            s.refined.stop,
             1e3 * s.seconds,
             baseline.costs.first().copied().unwrap_or(f64::NAN),
             baseline.cost()
