@@ -1,6 +1,6 @@
 //! Each stage of the batch pipeline (`screen --basis incremental`) on M3500 and INTEL when
 //! the datasets are present, on a simulated 3500-pose world otherwise; and the whole `solve`
-//! (read, screen, orientations, positions, 5 refinement iterations) on M3500 and city10000.
+//! (read, screen, orientations, positions, refinement to convergence; plain and robust) on M3500 and city10000.
 //!
 //! `cargo bench --bench batch`
 
@@ -8,7 +8,7 @@ use std::hint::black_box;
 use std::path::PathBuf;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use so2lin::batch::{BatchConfig, screen, solve};
+use so2lin::batch::{BatchConfig, RobustConfig, screen, solve, solve_robust};
 use so2lin::cycles::{BasisKind, CycleBasis};
 use so2lin::estimate::OrientationEstimator;
 use so2lin::graph::PoseGraph;
@@ -81,7 +81,8 @@ fn bench(c: &mut Criterion) {
     }
 }
 
-/// The whole `solve` command: read, screen, θ*, positions, 5 refinement iterations.
+/// The whole `solve` command: read, screen, θ*, positions, refinement to convergence (the
+/// defaults); `solve/robust/…` with the robust kernel, as `so2lin solve` runs by default.
 fn bench_solve(c: &mut Criterion) {
     let mut inputs = datasets(&["M3500.g2o", "city10000.g2o"]);
     if inputs.is_empty() {
@@ -97,6 +98,18 @@ fn bench_solve(c: &mut Criterion) {
                 let r = screen(&g, &BatchConfig::default()).expect("screens");
                 let orient = OrientationEstimator::new(&g).expect("factors");
                 solve(&g, &r, &orient, &r.hypotheses[0], &refine)
+                    .expect("solves")
+                    .refined
+                    .cost()
+            })
+        });
+        group.bench_function(format!("robust/{name}"), |b| {
+            b.iter(|| {
+                let g = read(black_box(bytes));
+                let r = screen(&g, &BatchConfig::default()).expect("screens");
+                let orient = OrientationEstimator::new(&g).expect("factors");
+                let robust = RobustConfig::default();
+                solve_robust(&g, &r, &orient, &r.hypotheses[0], &refine, &robust)
                     .expect("solves")
                     .refined
                     .cost()

@@ -4,15 +4,47 @@
 //! least-squares positions → SE(2) refinement. It is the reference the online estimator is checked against, and it is
 //! only a driver: every formula lives in [`crate::cycles`], [`crate::gamma`],
 //! [`crate::screening`], [`crate::wraps`] and [`crate::estimate`].
+//!
+//! **Robust poses** ([`solve_robust`]): false loop closures (METHOD.md §11) are met with the
+//! dynamic covariance scaling kernel (DCS, Agarwal et al. 2013) on loop closures (edges whose
+//! ids differ by more than 1; odometry keeps its weight): a loop closure with statistic χ²_e
+//! has its information scaled by
+//!
+//! ```text
+//! s_e² = min(1, 2Φ / (Φ + χ²_e))²,      Φ = χ²_d⁻¹(1 − α / (2 m_L))
+//! ```
+//!
+//! (m_L loop closures, α [`RobustConfig::alpha`]): Φ is the family-wise (Bonferroni) quantile,
+//! so on data that follow the declared noise no genuine loop closure is down-weighted with
+//! probability ≥ 1 − α/2. A pass has three stages; the first two are
+//! iterated to fixed weights (iteratively reweighted least squares, at most
+//! [`RobustConfig::rounds`] rounds):
+//! 1. orientations, d = 1, `χ²_e = wrap(θ_j − θ_i − δ_e)² / σ_e²`, the wraps re-read from the
+//!    current θ (`k_e = round((δ_e − θ_j + θ_i) / 2π)`), started from the hypothesis' θ*;
+//! 2. the SE(2) cost, d = 3, `χ²_e = e_eᵀ Ω_e e_e`: least-squares positions from stage 1,
+//!    Levenberg–Marquardt with the stage-1 weights, then reweighted Levenberg–Marquardt;
+//! 3. loop closures with `χ²_e > Φ` at the result are **rejected**; if none is, the five loop
+//!    closures of largest χ²_e are tested by leaving each out: `Δ_e = F − min F_{without e}`
+//!    (the cost drop, χ²_3 for a genuine edge in the linear-Gaussian model) `> Φ` rejects
+//!    it. This catches a false edge the map has bent to fit, whose residual is small.
+//!
+//! After a pass that rejected edges, the graph without them is screened again and solved from
+//! its own θ* by a new pass (at most five passes); the final poses are the plain refinement
+//! on the edges kept: on clean data, the ordinary least-squares optimum.
+//!
+//! Orientations and positions are linear given the wraps, so every round is re-weighted sparse
+//! solves.
 
 use std::time::Instant;
 
 use crate::cycles::{BasisKind, CycleBasis, McbError};
 use crate::estimate::{EstimateError, OrientationEstimator};
 use crate::gamma::{GammaModel, SingularError};
-use crate::graph::{Pose2, PoseGraph};
+use crate::graph::{Edge, GraphError, Information, NodeId, NodePolicy, Pose2, PoseGraph};
 use crate::refine::{RefineConfig, Refined};
-use crate::screening::{ConfigError, Hypothesis, Screened, Screener, ScreeningConfig};
+use crate::screening::{
+    ConfigError, Hypothesis, Screened, Screener, ScreeningConfig, chi2_quantile,
+};
 use crate::wraps::{WrapError, WrapSolver};
 
 pub use crate::screening::{InconsistentCycle, Iteration, SecondOutcome};
@@ -83,10 +115,48 @@ pub struct Solution {
     pub linear: Vec<Pose2>,
     /// SE(2) cost `Σ eᵀΩe` of [`linear`](Self::linear).
     pub cost_linear: f64,
-    /// The refinement from [`linear`](Self::linear) (its cost after each accepted step).
+    /// The refinement from [`linear`](Self::linear) (its cost after each accepted step), on
+    /// the edges not [`rejected`](Self::rejected).
     pub refined: Refined,
+    /// Loop closures rejected by the robust kernel ([`solve_robust`]; empty for [`solve`]).
+    pub rejected: Vec<RejectedEdge>,
     /// Wall time of this solution.
     pub seconds: f64,
+}
+
+/// A loop closure the robust kernel rejected.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct RejectedEdge {
+    /// 0-based index in the graph's edge order.
+    pub edge: usize,
+    /// Source node id.
+    pub from: NodeId,
+    /// Target node id.
+    pub to: NodeId,
+    /// The test: `"se2_chi2"` (the edge's `e_eᵀ Ω_e e_e` at the robust solution, 3 dof).
+    pub test: &'static str,
+    /// The statistic χ²_e.
+    pub statistic: f64,
+    /// The threshold Φ it exceeded.
+    pub threshold: f64,
+}
+
+/// Settings of [`solve_robust`].
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct RobustConfig {
+    /// Family-wise level of the loop-closure test (module docs). Default 0.01.
+    pub alpha: f64,
+    /// Most reweighting rounds per stage. Default 20.
+    pub rounds: usize,
+}
+
+impl Default for RobustConfig {
+    fn default() -> Self {
+        Self {
+            alpha: 0.01,
+            rounds: 20,
+        }
+    }
 }
 
 /// Why poses could not be computed.
@@ -98,6 +168,24 @@ pub enum SolveError {
     /// A linear system failed.
     #[error(transparent)]
     Estimate(#[from] EstimateError),
+    /// A reweighted edge failed validation (an information matrix scaled out of range).
+    #[error(transparent)]
+    Graph(#[from] GraphError),
+    /// Bad robust settings.
+    #[error("invalid robust setting: alpha = {0} must be in (0, 1)")]
+    RobustAlpha(f64),
+    /// Screening the graph without the rejected edges failed.
+    #[error("screening without the rejected loop closures: {0}")]
+    Screening(Box<BatchError>),
+    /// Screening the graph without the rejected edges left no hypothesis.
+    #[error("screening without the rejected loop closures left no hypothesis")]
+    NoHypothesis,
+}
+
+impl From<BatchError> for SolveError {
+    fn from(e: BatchError) -> Self {
+        SolveError::Screening(Box::new(e))
+    }
 }
 
 /// Poses for a hypothesis of a screened graph: wraps, θ* (with the graph's factored
@@ -122,8 +210,237 @@ pub fn solve(
         linear,
         cost_linear,
         refined,
+        rejected: Vec::new(),
         seconds: t.elapsed().as_secs_f64(),
     })
+}
+
+/// `min(1, 2Φ/(Φ + χ²))²`, the DCS scale of the information.
+fn dcs_weight(chi2: f64, phi: f64) -> f64 {
+    let s = (2.0 * phi / (phi + chi2)).min(1.0);
+    if s.is_finite() { s * s } else { 0.0 }
+}
+
+/// The graph with each edge's information scaled by its weight; an edge of weight 0 is left
+/// out. Nodes keep their order, so node indices are those of `graph`.
+fn reweighted(graph: &PoseGraph, weight: &[f64]) -> Result<PoseGraph, GraphError> {
+    let mut g = PoseGraph::new();
+    for n in graph.nodes() {
+        g.add_node(n.id, n.initial)?;
+    }
+    for (e, &w) in graph.edges().iter().zip(weight) {
+        if w == 1.0 {
+            g.add_edge(*e, NodePolicy::RequireKnown)?;
+        } else if w > 0.0 {
+            let info = Information(e.information().0.map(|v| v * w));
+            let scaled = Edge::new(e.from(), e.to(), e.measurement(), info)?;
+            g.add_edge(scaled, NodePolicy::RequireKnown)?;
+        }
+    }
+    Ok(g)
+}
+
+/// Poses for a hypothesis with the DCS kernel on loop closures (module docs): the rejected
+/// loop closures are listed, and the refinement is the plain one on the others. When a pass
+/// rejects edges, the graph without them is screened again (family-wise at
+/// [`RobustConfig::alpha`], incremental basis) and solved from its own θ* by another pass, up to
+/// five passes, until a pass rejects nothing.
+pub fn solve_robust(
+    graph: &PoseGraph,
+    result: &BatchResult,
+    orient: &OrientationEstimator,
+    h: &Hypothesis,
+    refine: &RefineConfig,
+    robust: &RobustConfig,
+) -> Result<Solution, SolveError> {
+    if !(robust.alpha > 0.0 && robust.alpha < 1.0) {
+        return Err(SolveError::RobustAlpha(robust.alpha));
+    }
+    let t = Instant::now();
+    let edges = graph.edges();
+    let m_l = edges.iter().filter(|e| !e.is_odometric()).count().max(1) as f64;
+    let level = 1.0 - robust.alpha / (2.0 * m_l);
+    let phi = (chi2_quantile(1.0, level), chi2_quantile(3.0, level));
+    let screening = BatchConfig {
+        basis: BasisKind::Incremental,
+        screening: ScreeningConfig {
+            alpha: robust.alpha,
+            ..ScreeningConfig::default()
+        },
+    };
+    let mut theta0 = orient.orientations(&result.wraps(h)?);
+    let mut alive: Vec<usize> = (0..edges.len()).collect();
+    let mut g = graph.clone();
+    let mut rejected = Vec::new();
+    let mut first = None;
+    let mut x;
+    let mut pass = 0;
+    loop {
+        pass += 1;
+        let p = robust_pass(&g, &theta0, refine, robust, phi)?;
+        x = p.poses;
+        first.get_or_insert((p.chi2_orientation, p.linear));
+        if p.rejected.is_empty() || pass == 5 {
+            break;
+        }
+        for (local, chi2) in p.rejected {
+            let e = alive[local];
+            rejected.push(RejectedEdge {
+                edge: e,
+                from: edges[e].from(),
+                to: edges[e].to(),
+                test: "se2_chi2",
+                statistic: chi2,
+                threshold: phi.1,
+            });
+        }
+        rejected.sort_by_key(|r| r.edge);
+        let mut keep = vec![1.0; edges.len()];
+        for r in &rejected {
+            keep[r.edge] = 0.0;
+        }
+        alive.retain(|&e| keep[e] == 1.0);
+        g = reweighted(graph, &keep)?;
+        let r = screen(&g, &screening)?;
+        let best = r.hypotheses.first().ok_or(SolveError::NoHypothesis)?;
+        theta0 = OrientationEstimator::new(&g)?.orientations(&r.wraps(best)?);
+    }
+    let refined = crate::refine::refine(&g, &x, refine)?;
+    let (chi2_orientation, linear) = first.unwrap_or_default();
+    let cost_linear = crate::refine::cost(graph, &linear);
+    Ok(Solution {
+        wraps: wraps_of(
+            graph,
+            &refined.poses.iter().map(|p| p.theta).collect::<Vec<_>>(),
+        ),
+        chi2_orientation,
+        linear,
+        cost_linear,
+        refined,
+        rejected,
+        seconds: t.elapsed().as_secs_f64(),
+    })
+}
+
+/// Loop closures tested by leaving them out, per pass (those with the largest χ²_e).
+const LEAVE_ONE_OUT: usize = 5;
+
+/// One robust pass (stages 1–3 of the module docs) from orientations θ₀.
+struct Pass {
+    /// The robust poses.
+    poses: Vec<Pose2>,
+    /// Loop closures of the pass' graph with χ²_e > Φ at them: (edge, χ²_e).
+    rejected: Vec<(usize, f64)>,
+    /// Orientation χ² after stage 1 (every edge at full weight).
+    chi2_orientation: f64,
+    /// Least-squares positions after stage 1.
+    linear: Vec<Pose2>,
+}
+
+fn robust_pass(
+    graph: &PoseGraph,
+    theta0: &[f64],
+    refine: &RefineConfig,
+    robust: &RobustConfig,
+    (phi_1, phi_3): (f64, f64),
+) -> Result<Pass, SolveError> {
+    let edges = graph.edges();
+    let ends = graph.endpoints();
+    let loop_closure: Vec<bool> = edges.iter().map(|e| !e.is_odometric()).collect();
+    let settled = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-3);
+    let weights_of = |stat: &dyn Fn(usize) -> f64, phi: f64| -> Vec<f64> {
+        (0..edges.len())
+            .map(|e| {
+                if loop_closure[e] {
+                    dcs_weight(stat(e), phi)
+                } else {
+                    1.0
+                }
+            })
+            .collect()
+    };
+    // Stage 1: orientations.
+    let mut theta = theta0.to_vec();
+    let mut w = vec![1.0; edges.len()];
+    let mut g_w = graph.clone();
+    for _ in 0..robust.rounds {
+        let residual = |e: usize| {
+            let (a, b) = ends[e];
+            crate::sim::wrap_angle(theta[b] - theta[a] - edges[e].delta())
+        };
+        let next = weights_of(&|e| residual(e).powi(2) / edges[e].sigma2(), phi_1);
+        if settled(&next, &w) {
+            break;
+        }
+        w = next;
+        g_w = reweighted(graph, &w)?;
+        theta = OrientationEstimator::new(&g_w)?.orientations(&wraps_of(graph, &theta));
+    }
+    let chi2_orientation = OrientationEstimator::new(graph)?.cost(&theta, &wraps_of(graph, &theta));
+    // Stage 2: SE(2) with least-squares positions from stage 1.
+    let linear = crate::estimate::poses(&g_w, &theta)?;
+    let inner = RefineConfig {
+        iterations: refine.iterations.min(20),
+        ..*refine
+    };
+    // First with the weights of stage 1 (a linear start can be far from the minimum, and
+    // the kernel would then down-weight genuine edges), then reweighted.
+    let mut x = crate::refine::refine(&g_w, &linear, &inner)?.poses;
+    let mut w2 = vec![f64::NAN; edges.len()];
+    for _ in 0..robust.rounds {
+        let chi2: Vec<f64> = crate::refine::edge_costs(graph, &x).collect();
+        let next = weights_of(&|e| chi2[e], phi_3);
+        if settled(&next, &w2) {
+            break;
+        }
+        w2 = next;
+        x = crate::refine::refine(&reweighted(graph, &w2)?, &x, &inner)?.poses;
+    }
+    let chi2: Vec<f64> = crate::refine::edge_costs(graph, &x).collect();
+    let mut rejected: Vec<(usize, f64)> = (0..edges.len())
+        .filter(|&e| loop_closure[e] && chi2[e] > phi_3)
+        .map(|e| (e, chi2[e]))
+        .collect();
+    if rejected.is_empty() {
+        // Leave-one-out: a false edge the map bent to fit has a small residual but a large
+        // cost drop when it is left out, Δ_e = min F − min F without e (χ²_3 for a genuine
+        // edge in the linear-Gaussian model). Tested for the largest residuals.
+        let w_all: Vec<f64> = if w2[0].is_nan() {
+            vec![1.0; edges.len()]
+        } else {
+            w2
+        };
+        let with = crate::refine::cost(&reweighted(graph, &w_all)?, &x);
+        let mut order: Vec<usize> = (0..edges.len()).filter(|&e| loop_closure[e]).collect();
+        order.sort_by(|&a, &b| chi2[b].total_cmp(&chi2[a]).then(a.cmp(&b)));
+        for &e in order.iter().take(LEAVE_ONE_OUT) {
+            let mut w_e = w_all.clone();
+            w_e[e] = 0.0;
+            let without = crate::refine::refine(&reweighted(graph, &w_e)?, &x, &inner)?.cost();
+            if with - without > phi_3 {
+                rejected.push((e, with - without));
+            }
+        }
+        rejected.sort_by_key(|r| r.0);
+    }
+    Ok(Pass {
+        poses: x,
+        rejected,
+        chi2_orientation,
+        linear,
+    })
+}
+
+/// The wraps that bring every edge's angle residual into (−π, π] at orientations θ.
+fn wraps_of(graph: &PoseGraph, theta: &[f64]) -> Vec<i64> {
+    graph
+        .edges()
+        .iter()
+        .zip(graph.endpoints())
+        .map(|(e, &(a, b))| {
+            ((e.delta() - theta[b] + theta[a]) / std::f64::consts::TAU).round() as i64
+        })
+        .collect()
 }
 
 /// The requested basis was replaced by the incremental basis.
@@ -182,15 +499,17 @@ pub enum BatchError {
 }
 
 /// Screen a γ model to the end from the screener's current state: the first screening to its
-/// fixed point (from scratch when nothing is determined yet), then the second.
-/// Shared by [`screen`] and the online estimator's `finish`.
+/// fixed point (from scratch when nothing is determined yet), then the second; cycle i is
+/// tested at half-width factor `q(i)`. Shared by [`screen`] and the online estimator's `finish`.
 pub(crate) fn run_screening(
     model: &GammaModel,
     mut screener: Screener,
     cfg: &ScreeningConfig,
-    q: f64,
+    q: &dyn Fn(usize) -> f64,
     cycles: &CycleBasis,
 ) -> Result<Screened, SingularError> {
+    let qs: Vec<f64> = (0..model.len()).map(q).collect();
+    let q = |i: usize| qs[i];
     let edges = |i: usize| {
         cycles.cycles[i]
             .terms
@@ -200,12 +519,29 @@ pub(crate) fn run_screening(
     };
     screener.grow(model.len());
     let mut first = Vec::new();
-    screener.first_screening(model, q, &edges, &mut first)?;
-    screener.finish(model, cfg, q, &edges, first)
+    screener.first_screening(model, &q, &edges, &mut first)?;
+    screener.finish(model, cfg, &q, &edges, first)
 }
 
-/// Run the whole pipeline on a graph.
+/// Run the whole pipeline on a graph. Family-wise (the default), every cycle is tested at
+/// α/(2ℓ) (Bonferroni, [`ScreeningConfig::level`]).
 pub fn screen(graph: &PoseGraph, config: &BatchConfig) -> Result<BatchResult, BatchError> {
+    screen_with(graph, config, false)
+}
+
+/// The pipeline with the online estimator's levels: cycle t (in basis order, which for the
+/// incremental basis is the order the cycles close in) at
+/// [`ScreeningConfig::online_level`]`(t)`. A batch run and a finished online run on the same
+/// edges then test every cycle at the same level (used to compare the two).
+pub fn screen_spending(graph: &PoseGraph, config: &BatchConfig) -> Result<BatchResult, BatchError> {
+    screen_with(graph, config, true)
+}
+
+fn screen_with(
+    graph: &PoseGraph,
+    config: &BatchConfig,
+    spending: bool,
+) -> Result<BatchResult, BatchError> {
     config.screening.validate()?;
     let t0 = Instant::now();
     let (basis, solver, fallback) = integral_basis(graph, config.basis)?;
@@ -214,8 +550,16 @@ pub fn screen(graph: &PoseGraph, config: &BatchConfig) -> Result<BatchResult, Ba
     let sigma2: Vec<f64> = graph.edges().iter().map(|e| e.sigma2()).collect();
     let delta: Vec<f64> = graph.edges().iter().map(|e| e.delta()).collect();
     let model = GammaModel::from_cycles(&basis.cycles, &sigma2, &delta);
-    let q = config.screening.quantile(model.len());
-    let screened = run_screening(&model, Screener::new(), &config.screening, q, &basis)?;
+    let s = config.screening;
+    let bonferroni = s.quantile(model.len());
+    let q = |t: usize| {
+        if spending {
+            s.online_quantile(t)
+        } else {
+            bonferroni
+        }
+    };
+    let screened = run_screening(&model, Screener::new(), &s, &q, &basis)?;
     Ok(BatchResult {
         edges: graph.edge_count(),
         basis,

@@ -159,13 +159,7 @@ impl LogContents {
                 .parse()
                 .map_err(|_| parse_err("max_hypotheses"))?,
         };
-        let expected_cycles = get("expected_cycles")?
-            .parse()
-            .map_err(|_| parse_err("expected_cycles"))?;
-        Ok(OnlineConfig {
-            screening,
-            expected_cycles,
-        })
+        Ok(OnlineConfig { screening })
     }
 }
 

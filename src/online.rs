@@ -57,23 +57,11 @@ use crate::screening::{
 };
 
 /// Settings of the online estimator.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct OnlineConfig {
-    /// Screening settings (α, degrees of freedom, family-wise, hypothesis cap).
+    /// Screening settings (α, degrees of freedom, family-wise, hypothesis cap). Family-wise,
+    /// cycle t is tested at [`ScreeningConfig::online_level`]`(t)` (α-spending).
     pub screening: ScreeningConfig,
-    /// With a family-wise level the number of cycles ℓ is not known in advance online: the
-    /// per-cycle level is computed for this many cycles (the guarantee holds while the run
-    /// closes no more). Ignored at a per-cycle level.
-    pub expected_cycles: usize,
-}
-
-impl Default for OnlineConfig {
-    fn default() -> Self {
-        Self {
-            screening: ScreeningConfig::default(),
-            expected_cycles: 10_000,
-        }
-    }
 }
 
 /// What a step decided about a cycle.
@@ -221,7 +209,6 @@ impl From<EstimateError> for OnlineError {
 /// ```
 pub struct OnlineEstimator {
     config: OnlineConfig,
-    q: f64,
     graph: PoseGraph,
     sigma2: Vec<f64>,
     delta: Vec<f64>,
@@ -270,10 +257,8 @@ impl OnlineEstimator {
     /// A new estimator with no nodes.
     pub fn new(config: OnlineConfig) -> Result<Self, OnlineError> {
         config.screening.validate()?;
-        let q = config.screening.quantile(config.expected_cycles);
         Ok(Self {
             config,
-            q,
             graph: PoseGraph::new(),
             sigma2: Vec::new(),
             delta: Vec::new(),
@@ -374,9 +359,12 @@ impl OnlineEstimator {
         self.gamma.push(0);
         self.screener.grow(t + 1);
         let cycles = &self.cycles;
-        let (m, iv, determined) = self
-            .screener
-            .screen(&self.model, t, self.q, || edges_of(&cycles[t]));
+        let (m, iv, determined) = self.screener.screen(
+            &self.model,
+            t,
+            self.config.screening.online_quantile(t),
+            || edges_of(&cycles[t]),
+        );
         let mut rescreened = Vec::new();
         if determined {
             self.propagate(t, &mut rescreened);
@@ -490,9 +478,12 @@ impl OnlineEstimator {
             for i in neighbours {
                 let before = self.screener.interval(i);
                 let cycles = &self.cycles;
-                let (m, after, determined) = self
-                    .screener
-                    .screen(&self.model, i, self.q, || edges_of(&cycles[i]));
+                let (m, after, determined) = self.screener.screen(
+                    &self.model,
+                    i,
+                    self.config.screening.online_quantile(i),
+                    || edges_of(&cycles[i]),
+                );
                 self.counters.rescreens += 1;
                 if determined {
                     self.ambiguous.remove(&i);
@@ -759,7 +750,7 @@ impl OnlineEstimator {
             &self.model,
             self.screener.clone(),
             &self.config.screening,
-            self.q,
+            &|t| self.config.screening.online_quantile(t),
             &basis,
         )
         .map_err(|e| OnlineError::Numerical(e.to_string()))?;

@@ -15,16 +15,29 @@
 //! The true wrap of each edge is therefore the integer of METHOD.md §1,
 //! `k_e = (δ_e − ε_e − (θ_j − θ_i)) / 2π`, recorded with the noise in [`GroundTruth`].
 //!
-//! Determinism: the stream of numbers comes from ChaCha8 seeded with the seed, uniform
-//! variates from the top 53 bits, normal variates by Box–Muller with the pure-Rust `libm`
-//! functions, so the same seed gives bit-identical worlds on every platform.
+//! **False loop closures** ([`inject_outliers`], METHOD.md §11, the Vertigo protocol of
+//! Sünderhauf & Protzel): K false edges are added to any graph, either between K random node
+//! pairs (`random`), or in groups of 10 between two regions, edge k of a group joining the k-th
+//! nodes after two random starts and all edges of a group sharing one measurement
+//! (`clustered`; the last group is shorter when 10 does not divide K). A measurement is drawn
+//! as `(x, y, θ)` with x, y uniform in [−10, 10) and θ uniform in (−π, π]; its information is
+//! that of a genuine loop closure drawn uniformly (of the first edge when the graph has
+//! none). Nodes are taken in ascending id order; paired ids differ by more than 1 (no false
+//! edge looks like odometry) and every false edge is new. Each false edge goes right after
+//! the edge that introduces its later node (first appearance in edge order), which is the
+//! moment a robot could produce it: robot order.
+//!
+//! Determinism: the stream of numbers comes from ChaCha8 seeded with the seed (stream 0 for
+//! worlds, stream 1 for outliers), uniform variates from the top 53 bits, normal variates by
+//! Box–Muller with the pure-Rust `libm` functions, so the same seed gives bit-identical worlds
+//! on every platform.
 
 use rand_chacha::ChaCha8Rng;
 use rand_chacha::rand_core::{Rng, SeedableRng};
 use serde::Serialize;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
-use crate::graph::{Edge, GraphError, NodePolicy, Pose2, PoseGraph};
+use crate::graph::{Edge, GraphError, NodeId, NodePolicy, Pose2, PoseGraph};
 
 /// Simulator parameters.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
@@ -283,6 +296,179 @@ fn add_measurement(
     Ok(m)
 }
 
+/// How false loop closures are placed (module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OutlierKind {
+    /// Independent random node pairs.
+    Random,
+    /// Groups of 10 consecutive edges between two regions, sharing one measurement.
+    Clustered,
+}
+
+/// Nodes per group of clustered false edges.
+pub const CLUSTER_SIZE: usize = 10;
+
+/// The outlier benchmark's settings.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct OutlierConfig {
+    /// Number of false edges K.
+    pub count: usize,
+    /// Random pairs or clustered groups.
+    pub kind: OutlierKind,
+    /// Seed of the random stream.
+    pub seed: u64,
+}
+
+/// One inserted false edge.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct FalseEdge {
+    /// Its index in the corrupted graph's edge order (0-based).
+    pub edge: usize,
+    /// Source node id.
+    pub from: NodeId,
+    /// Target node id.
+    pub to: NodeId,
+    /// Group (clustered) or edge (random) number, 0-based.
+    pub group: usize,
+}
+
+/// A graph with false loop closures inserted.
+#[derive(Clone, Debug)]
+pub struct Corrupted {
+    /// The corrupted graph (same nodes, genuine edges in their order, false edges inserted).
+    pub graph: PoseGraph,
+    /// The false edges, ascending by index.
+    pub false_edges: Vec<FalseEdge>,
+    /// For every edge of `graph`, its index in the input graph (`None` for a false edge).
+    pub source_edge: Vec<Option<usize>>,
+}
+
+impl Corrupted {
+    /// Whether edge e of the corrupted graph is false.
+    pub fn is_false(&self, e: usize) -> bool {
+        self.source_edge.get(e).is_some_and(Option::is_none)
+    }
+}
+
+/// Insert false loop closures into a graph (module docs).
+pub fn inject_outliers(graph: &PoseGraph, config: &OutlierConfig) -> Result<Corrupted, SimError> {
+    let k = config.count;
+    let mut ids: Vec<NodeId> = graph.nodes().iter().map(|n| n.id).collect();
+    ids.sort_unstable();
+    let group = match config.kind {
+        OutlierKind::Random => 1,
+        OutlierKind::Clustered => CLUSTER_SIZE,
+    };
+    // Two starts whose groups are disjoint and not adjacent: 2·group + 2 nodes at least.
+    let needed = 2 * group + 2;
+    if k > 0 && ids.len() < needed {
+        return Err(SimError::Parameter {
+            name: "outliers",
+            value: k as f64,
+            why: "the graph needs at least 4 nodes (random) or 22 nodes (clustered)",
+        });
+    }
+    let mut rng = Noise(ChaCha8Rng::seed_from_u64(config.seed));
+    rng.0.set_stream(1);
+    let genuine: Vec<&Edge> = graph.edges().iter().filter(|e| !e.is_odometric()).collect();
+    let mut existing: std::collections::HashSet<(NodeId, NodeId)> = graph
+        .edges()
+        .iter()
+        .map(|e| (e.from().min(e.to()), e.from().max(e.to())))
+        .collect();
+    let index = |rng: &mut Noise, n: usize| ((rng.uniform() * n as f64) as usize).min(n - 1);
+    let mut made: Vec<(usize, Edge)> = Vec::with_capacity(k);
+    let mut g = 0;
+    let mut attempts = 0usize;
+    while made.len() < k {
+        attempts += 1;
+        if attempts > 1000 * (k + 10) {
+            return Err(SimError::Parameter {
+                name: "outliers",
+                value: k as f64,
+                why: "too many for this graph: no more new node pairs found",
+            });
+        }
+        let len = group.min(k - made.len());
+        let last = ids.len() - len;
+        let (a, b) = (index(&mut rng, last + 1), index(&mut rng, last + 1));
+        // Disjoint, non-adjacent ranges a..a+len and b..b+len.
+        if a.abs_diff(b) <= len {
+            continue;
+        }
+        let pairs: Vec<(NodeId, NodeId)> = (0..len).map(|i| (ids[a + i], ids[b + i])).collect();
+        let key = |(p, q): (NodeId, NodeId)| (p.min(q), p.max(q));
+        if pairs
+            .iter()
+            .any(|&pq| pq.0.abs_diff(pq.1) <= 1 || existing.contains(&key(pq)))
+        {
+            continue;
+        }
+        let z = Pose2::new(
+            20.0 * rng.uniform() - 10.0,
+            20.0 * rng.uniform() - 10.0,
+            PI - TAU * rng.uniform(),
+        );
+        let info = if genuine.is_empty() {
+            graph.edges().first().map(|e| e.information())
+        } else {
+            Some(genuine[index(&mut rng, genuine.len())].information())
+        };
+        let Some(info) = info else {
+            return Err(SimError::Parameter {
+                name: "outliers",
+                value: k as f64,
+                why: "the graph has no edge to take the information from",
+            });
+        };
+        for pq in pairs {
+            existing.insert(key(pq));
+            made.push((g, Edge::new(pq.0, pq.1, z, info)?));
+        }
+        g += 1;
+    }
+    // Robot order: after the edge that introduces the later of the two nodes.
+    let mut first_seen: std::collections::HashMap<NodeId, usize> = Default::default();
+    for (e, edge) in graph.edges().iter().enumerate() {
+        first_seen.entry(edge.from()).or_insert(e);
+        first_seen.entry(edge.to()).or_insert(e);
+    }
+    let slot = |id: NodeId| first_seen.get(&id).copied().unwrap_or(0);
+    let mut after: Vec<(usize, usize, Edge)> = made
+        .into_iter()
+        .map(|(grp, e)| (slot(e.from()).max(slot(e.to())), grp, e))
+        .collect();
+    after.sort_by_key(|x| x.0); // stable: generation order within a slot
+    let mut out = PoseGraph::new();
+    for n in graph.nodes() {
+        out.add_node(n.id, n.initial)?;
+    }
+    let mut false_edges = Vec::with_capacity(k);
+    let mut source_edge = Vec::with_capacity(graph.edge_count() + k);
+    let mut next = after.iter().peekable();
+    for (e, edge) in graph.edges().iter().enumerate() {
+        out.add_edge(*edge, NodePolicy::RequireKnown)?;
+        source_edge.push(Some(e));
+        while let Some(&&(_, grp, f)) = next.peek().filter(|x| x.0 == e) {
+            let idx = out.add_edge(f, NodePolicy::RequireKnown)?;
+            false_edges.push(FalseEdge {
+                edge: idx,
+                from: f.from(),
+                to: f.to(),
+                group: grp,
+            });
+            source_edge.push(None);
+            next.next();
+        }
+    }
+    Ok(Corrupted {
+        graph: out,
+        false_edges,
+        source_edge,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -356,5 +542,91 @@ mod tests {
         let mut c = SimConfig::new(10, 1);
         c.loop_closure_probability = 1.5;
         assert!(simulate(&c).is_err());
+    }
+}
+
+#[cfg(test)]
+mod outlier_tests {
+    use super::*;
+
+    #[test]
+    fn random_and_clustered_outliers_follow_the_protocol() {
+        let w = simulate(&SimConfig::new(300, 4)).unwrap();
+        let g = &w.graph;
+        for kind in [OutlierKind::Random, OutlierKind::Clustered] {
+            let cfg = OutlierConfig {
+                count: 25,
+                kind,
+                seed: 9,
+            };
+            let c = inject_outliers(g, &cfg).unwrap();
+            assert_eq!(c.graph.edge_count(), g.edge_count() + 25);
+            assert_eq!(c.false_edges.len(), 25);
+            assert_eq!(c.graph.node_count(), g.node_count());
+            // Genuine edges keep their order; false edges are marked.
+            let genuine: Vec<Edge> = (0..c.graph.edge_count())
+                .filter(|&e| !c.is_false(e))
+                .map(|e| c.graph.edges()[e])
+                .collect();
+            assert_eq!(genuine.as_slice(), g.edges());
+            let mut first_seen = std::collections::HashMap::new();
+            for (e, edge) in c.graph.edges().iter().enumerate() {
+                if !c.is_false(e) {
+                    first_seen.entry(edge.from()).or_insert(e);
+                    first_seen.entry(edge.to()).or_insert(e);
+                }
+            }
+            for f in &c.false_edges {
+                let e = c.graph.edges()[f.edge];
+                assert!(!e.is_odometric());
+                let z = e.measurement();
+                assert!(z.x.abs() <= 10.0 && z.y.abs() <= 10.0);
+                assert!(z.theta > -PI && z.theta <= PI);
+                // Right after the genuine edge introducing its later node (or another false
+                // edge inserted there).
+                let later = first_seen[&e.from()].max(first_seen[&e.to()]);
+                assert!(f.edge > later);
+                assert!((later + 1..f.edge).all(|x| c.is_false(x)));
+            }
+            let groups = c.false_edges.iter().map(|f| f.group).max().unwrap() + 1;
+            match kind {
+                OutlierKind::Random => assert_eq!(groups, 25),
+                OutlierKind::Clustered => {
+                    assert_eq!(groups, 3);
+                    // One measurement per group; consecutive node pairs.
+                    for grp in 0..groups {
+                        let mut es: Vec<Edge> = c
+                            .false_edges
+                            .iter()
+                            .filter(|f| f.group == grp)
+                            .map(|f| c.graph.edges()[f.edge])
+                            .collect();
+                        es.sort_by_key(|e| e.from());
+                        assert!(
+                            es.windows(2)
+                                .all(|p| p[0].measurement() == p[1].measurement()
+                                    && p[1].from() == p[0].from() + 1
+                                    && p[1].to() == p[0].to() + 1)
+                        );
+                    }
+                }
+            }
+            // Deterministic.
+            let again = inject_outliers(g, &cfg).unwrap();
+            assert_eq!(again.graph.edges(), c.graph.edges());
+        }
+        let tiny = simulate(&SimConfig::new(3, 1)).unwrap();
+        let cfg = OutlierConfig {
+            count: 1,
+            kind: OutlierKind::Random,
+            seed: 1,
+        };
+        assert!(matches!(
+            inject_outliers(&tiny.graph, &cfg),
+            Err(SimError::Parameter {
+                name: "outliers",
+                ..
+            })
+        ));
     }
 }

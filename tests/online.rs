@@ -4,7 +4,7 @@
 mod common;
 
 use proptest::prelude::*;
-use so2lin::batch::{BatchConfig, screen};
+use so2lin::batch::{BatchConfig, screen, screen_spending};
 use so2lin::cycles::BasisKind;
 use so2lin::estimate::OrientationEstimator;
 use so2lin::graph::{Edge, Information, NodeId, Pose2, PoseGraph};
@@ -14,10 +14,11 @@ use so2lin::screening::ScreeningConfig;
 use so2lin::sim::{SimConfig, simulate};
 
 /// Stream `edges`, finish, and compare with the batch pipeline on `graph` (same edges, same
-/// order): identical wraps of the best hypothesis, orientations equal to 1e-9 (both anchored at
+/// order, every cycle at the same level: the online α-spending levels when family-wise):
+/// identical wraps of the best hypothesis, orientations equal to 1e-9 (both anchored at
 /// the batch graph's first node). Returns (online determined, batch determined).
 fn compare(name: &str, graph: &PoseGraph, edges: &[Edge], cfg: ScreeningConfig) -> (usize, usize) {
-    let batch = screen(
+    let batch = screen_spending(
         graph,
         &BatchConfig {
             basis: BasisKind::Incremental,
@@ -25,11 +26,7 @@ fn compare(name: &str, graph: &PoseGraph, edges: &[Edge], cfg: ScreeningConfig) 
         },
     )
     .unwrap();
-    let mut est = OnlineEstimator::new(OnlineConfig {
-        screening: cfg,
-        ..Default::default()
-    })
-    .unwrap();
+    let mut est = OnlineEstimator::new(OnlineConfig { screening: cfg }).unwrap();
     for e in edges {
         est.add_edge(*e).unwrap();
     }
@@ -138,7 +135,7 @@ fn extreme_noise_paths_may_differ_and_online_is_not_worse() {
         let mut c = SimConfig::new(200 + (seed as usize * 37) % 1300, seed);
         c.sigma_theta = 0.3;
         let w = simulate(&c).unwrap();
-        let batch = screen(&w.graph, &BatchConfig::default()).unwrap();
+        let batch = screen_spending(&w.graph, &BatchConfig::default()).unwrap();
         let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
         for e in w.graph.edges() {
             est.add_edge(*e).unwrap();
@@ -168,33 +165,33 @@ fn paper_preset_and_family_wise_also_agree() {
     })
     .unwrap();
     compare("paper", &w.graph, w.graph.edges(), ScreeningConfig::paper());
-    let fw = ScreeningConfig {
-        family_wise: true,
-        ..Default::default()
-    };
-    // Family-wise online uses `expected_cycles` for ℓ; give it the batch's ℓ.
-    let batch = screen(
+    // Family-wise: both sides at the online α-spending levels (see `compare`).
+    compare(
+        "family-wise",
         &w.graph,
-        &BatchConfig {
-            basis: BasisKind::Incremental,
-            screening: fw,
-        },
-    )
-    .unwrap();
-    let ell = batch.model.len();
-    let mut est = OnlineEstimator::new(OnlineConfig {
-        screening: fw,
-        expected_cycles: ell,
-    })
-    .unwrap();
-    for e in w.graph.edges() {
-        est.add_edge(*e).unwrap();
-    }
-    let online = est.finish().unwrap();
-    assert_eq!(
-        batch.wraps(&batch.hypotheses[0]).unwrap(),
-        online.wraps(&online.hypotheses[0]).unwrap()
+        w.graph.edges(),
+        ScreeningConfig::default(),
     );
+}
+
+/// The batch default (Bonferroni over the known ℓ) and the online default (α-spending) are
+/// both family-wise; on clean worlds they end at the same best hypothesis.
+#[test]
+fn bonferroni_batch_and_spending_online_agree_on_clean_worlds() {
+    for seed in 0..20u64 {
+        let w = simulate(&SimConfig::new(300 + 40 * seed as usize, 500 + seed)).unwrap();
+        let batch = screen(&w.graph, &BatchConfig::default()).unwrap();
+        let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+        for e in w.graph.edges() {
+            est.add_edge(*e).unwrap();
+        }
+        let online = est.finish().unwrap();
+        assert_eq!(
+            batch.wraps(&batch.hypotheses[0]).unwrap(),
+            online.wraps(&online.hypotheses[0]).unwrap(),
+            "seed {seed}"
+        );
+    }
 }
 
 /// Everything a caller can observe.

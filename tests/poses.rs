@@ -15,6 +15,9 @@ use so2lin::sim::{SimConfig, simulate, wrap_angle};
 const CONVERGED: RefineConfig = RefineConfig {
     iterations: 100,
     relative_decrease: 1e-12,
+    gradient_tolerance: 1e-9,
+    step_tolerance: 1e-12,
+    initial_damping: 1e-6,
 };
 
 /// RMS position and heading error of `x` against the truth expressed in node 0's frame.
@@ -109,6 +112,7 @@ fn noisy_manhattan_worlds_escape_the_odometry_local_minimum() {
     let refine = RefineConfig {
         iterations: 20,
         relative_decrease: 1e-6,
+        ..RefineConfig::default()
     };
     for name in ["M3500a.g2o", "M3500b.g2o", "M3500c.g2o"] {
         let Some(path) = common::dataset(name) else {

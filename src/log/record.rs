@@ -199,7 +199,6 @@ impl Recorder {
             ("dof", s.dof.to_string()),
             ("family_wise", s.family_wise.to_string()),
             ("max_hypotheses", s.max_hypotheses.to_string()),
-            ("expected_cycles", config.expected_cycles.to_string()),
         ]
         .into_iter()
         .map(|(k, v)| (k.to_owned(), v))

@@ -1,7 +1,6 @@
 //! The `so2lin` command-line tool.
 
-use std::fs::File;
-use std::io::{BufReader, BufWriter, IsTerminal, Write};
+use std::io::{BufReader, IsTerminal};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -10,6 +9,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
 mod bases;
+mod inject;
 mod plot;
 mod replay;
 mod screen;
@@ -22,7 +22,25 @@ use so2lin::graph::{GraphStats, PoseGraph};
 use so2lin::io::{self, InfoOrder, ReadOptions, ReadSummary};
 use so2lin::online::OnlineConfig;
 use so2lin::screening::ScreeningConfig;
-use so2lin::sim::{self, SimConfig};
+use so2lin::sim::{self, OutlierConfig, OutlierKind, SimConfig};
+
+/// Placement of false loop closures (`--outlier-kind`, `--kind`).
+#[derive(Clone, Copy, ValueEnum)]
+enum OutlierKindArg {
+    /// Independent random node pairs.
+    Random,
+    /// Groups of 10 consecutive edges between two regions sharing one measurement.
+    Clustered,
+}
+
+impl From<OutlierKindArg> for OutlierKind {
+    fn from(k: OutlierKindArg) -> Self {
+        match k {
+            OutlierKindArg::Random => OutlierKind::Random,
+            OutlierKindArg::Clustered => OutlierKind::Clustered,
+        }
+    }
+}
 
 #[derive(Parser)]
 #[command(
@@ -61,16 +79,29 @@ struct ScreeningArgs {
     /// Degrees of freedom of the per-cycle χ² quantile [default: 1; 3 with --paper].
     #[arg(long)]
     dof: Option<u32>,
-    /// The paper's setting: α = 0.01, 3 degrees of freedom (explicit --alpha/--dof win).
+    /// The paper's setting: α = 0.01 per cycle, 3 degrees of freedom (explicit --alpha/--dof
+    /// win).
     #[arg(long)]
     paper: bool,
+    /// Test every cycle at α instead of the family-wise default (about α·ℓ cycles of clean
+    /// data then fail their test).
+    #[arg(long, long_help = PER_CYCLE_HELP)]
+    per_cycle: bool,
     /// Cap on the hypotheses of the second screening.
     #[arg(long, default_value_t = 1_000_000)]
     max_hypotheses: usize,
 }
 
+/// The family-wise rule, described once for every command's help.
+const PER_CYCLE_HELP: &str = "Test every cycle at α instead of the default family-wise rule. \
+Family-wise (the default): the probability that any cycle fails its consistency test, or that \
+the surviving set misses the true cycle integers, is at most α on data that follow the declared \
+noise; the per-cycle tests share α/2 (α/(2ℓ) each in batch; the α-spending sequence \
+α_t = (α/2)·c/((t+100)·ln²(t+100)) online, where ℓ is not known in advance) and the joint test of \
+the second screening gets the other α/2. Per cycle, about α·ℓ cycles of clean data fail their test.";
+
 impl ScreeningArgs {
-    fn config(&self, family_wise: bool) -> ScreeningConfig {
+    fn config(&self) -> ScreeningConfig {
         let base = if self.paper {
             ScreeningConfig::paper()
         } else {
@@ -79,7 +110,7 @@ impl ScreeningArgs {
         ScreeningConfig {
             alpha: self.alpha.unwrap_or(base.alpha),
             dof: self.dof.unwrap_or(base.dof),
-            family_wise,
+            family_wise: base.family_wise && !self.per_cycle,
             max_hypotheses: self.max_hypotheses,
         }
     }
@@ -95,9 +126,6 @@ struct BatchArgs {
     basis: BasisKind,
     #[command(flatten)]
     screening: ScreeningArgs,
-    /// Family-wise level: per-cycle α/ℓ (Bonferroni).
-    #[arg(long)]
-    family_wise: bool,
     /// Information-matrix order of edge lines (default: detect).
     #[arg(long, value_enum, default_value = "auto")]
     order: OrderArg,
@@ -107,7 +135,7 @@ impl BatchArgs {
     fn config(&self) -> BatchConfig {
         BatchConfig {
             basis: self.basis,
-            screening: self.screening.config(self.family_wise),
+            screening: self.screening.config(),
         }
     }
 }
@@ -142,9 +170,43 @@ enum Command {
         /// Probability that an eligible earlier pose gets a loop closure.
         #[arg(long)]
         loop_closure_prob: Option<f64>,
+        /// Add this many false loop closures (Vertigo protocol, as `inject`); the ground truth
+        /// lists them under `false_edges`.
+        #[arg(long, default_value_t = 0)]
+        outliers: usize,
+        /// Placement of the false loop closures.
+        #[arg(long, value_enum, default_value = "random")]
+        outlier_kind: OutlierKindArg,
         /// Output g2o file.
         #[arg(long)]
         out: PathBuf,
+    },
+    /// Add false loop closures to a graph file (Vertigo protocol): K random pairs, or groups
+    /// of 10 consecutive edges between two regions sharing one measurement; angle uniform in
+    /// (−π, π], translation uniform in ±10; a genuine loop closure's information; each false
+    /// edge right after the edge introducing its later node (robot order). Writes g2o.
+    Inject {
+        /// Graph file (g2o or TORO).
+        file: PathBuf,
+        /// Number of false loop closures K.
+        #[arg(long)]
+        outliers: usize,
+        /// Placement of the false loop closures.
+        #[arg(long, value_enum, default_value = "random")]
+        kind: OutlierKindArg,
+        /// Random seed.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Output g2o file.
+        #[arg(long)]
+        out: PathBuf,
+        /// Write the false edges as JSON here (`false_edges[{edge, from, to, group}]`, edge =
+        /// 0-based index in OUT's edge order).
+        #[arg(long)]
+        truth: Option<PathBuf>,
+        /// Information-matrix order of edge lines (default: detect).
+        #[arg(long, value_enum, default_value = "auto")]
+        order: OrderArg,
     },
     /// Screen the cycle integers of a graph with the paper's batch pipeline.
     Screen {
@@ -162,14 +224,23 @@ enum Command {
         #[command(flatten)]
         batch: BatchArgs,
         /// Refinement: at most this many Levenberg–Marquardt iterations (0: linear poses only).
-        #[arg(long, default_value_t = 5)]
+        #[arg(long, default_value_t = so2lin::refine::RefineConfig::default().iterations)]
         refine: usize,
-        /// Stop refining once a step lowers the cost by less than this fraction.
-        #[arg(long, default_value_t = 1e-6)]
+        /// Converged once a step lowers the cost by less than this fraction.
+        #[arg(long, default_value_t = so2lin::refine::RefineConfig::default().relative_decrease)]
         tolerance: f64,
+        /// Converged once the gradient's largest entry (‖Σ JᵀΩe‖∞) is at most this.
+        #[arg(long, default_value_t = so2lin::refine::RefineConfig::default().gradient_tolerance)]
+        gradient_tolerance: f64,
         /// Solve every surviving hypothesis and rank them by refined cost.
         #[arg(long)]
         all_hypotheses: bool,
+        /// Plain least squares on every edge: no robust kernel. By default loop closures get
+        /// the DCS kernel with the family-wise threshold Φ = χ²_3⁻¹(1 − α/(2·loop closures)),
+        /// those still above Φ at the robust solution are rejected (and listed), and the
+        /// refinement runs on the rest.
+        #[arg(long)]
+        no_robust: bool,
         /// Also run the same refinement from dead-reckoned odometry (the local-minimum baseline).
         #[arg(long)]
         odometry: bool,
@@ -219,8 +290,8 @@ enum Command {
         basis: BasisKind,
         #[command(flatten)]
         screening: ScreeningArgs,
-        /// Refinement iterations.
-        #[arg(long, default_value_t = 5)]
+        /// Refinement: at most this many Levenberg–Marquardt iterations.
+        #[arg(long, default_value_t = so2lin::refine::RefineConfig::default().iterations)]
         refine: usize,
         /// Information-matrix order of edge lines (default: detect).
         #[arg(long, value_enum, default_value = "auto")]
@@ -232,9 +303,6 @@ enum Command {
         file: PathBuf,
         #[command(flatten)]
         screening: ScreeningArgs,
-        /// Family-wise level for this many cycles (α/(2·N) per cycle).
-        #[arg(long, value_name = "N")]
-        family_wise: Option<usize>,
         /// Write `node_id theta` lines of the best hypothesis after finishing.
         #[arg(long)]
         orientations: Option<PathBuf>,
@@ -346,14 +414,40 @@ fn main() -> ExitCode {
             sigma_theta,
             sigma_xy,
             loop_closure_prob,
+            outliers,
+            outlier_kind,
             out,
         } => {
             let mut c = SimConfig::new(poses, seed);
             c.sigma_theta = sigma_theta.unwrap_or(c.sigma_theta);
             c.sigma_xy = sigma_xy.unwrap_or(c.sigma_xy);
             c.loop_closure_probability = loop_closure_prob.unwrap_or(c.loop_closure_probability);
-            simulate(&c, &out)
+            let outliers = OutlierConfig {
+                count: outliers,
+                kind: outlier_kind.into(),
+                seed,
+            };
+            simulate(&c, &outliers, &out)
         }
+        Command::Inject {
+            file,
+            outliers,
+            kind,
+            seed,
+            out,
+            truth,
+            order,
+        } => inject::run(inject::InjectArgs {
+            file: &file,
+            order: order.into(),
+            outliers: OutlierConfig {
+                count: outliers,
+                kind: kind.into(),
+                seed,
+            },
+            out: &out,
+            truth: truth.as_deref(),
+        }),
         Command::Demo {
             poses,
             seed,
@@ -363,7 +457,6 @@ fn main() -> ExitCode {
         Command::Stream {
             file,
             screening,
-            family_wise,
             orientations,
             log,
             snapshot_every,
@@ -375,8 +468,7 @@ fn main() -> ExitCode {
         } => {
             let step_time_ok = step_time.is_finite() && (0.0..1e6).contains(&step_time);
             let config = OnlineConfig {
-                screening: screening.config(family_wise.is_some()),
-                expected_cycles: family_wise.unwrap_or(OnlineConfig::default().expected_cycles),
+                screening: screening.config(),
             };
             if !step_time_ok {
                 Err(format!(
@@ -420,12 +512,9 @@ fn main() -> ExitCode {
                 order: order.into(),
                 config: BatchConfig {
                     basis,
-                    screening: screening.config(false),
+                    screening: screening.config(),
                 },
-                refine: so2lin::refine::RefineConfig {
-                    iterations: refine,
-                    ..Default::default()
-                },
+                refine: so2lin::refine::RefineConfig::with_iterations(refine),
                 all_hypotheses,
                 size: (width, height),
             }),
@@ -434,7 +523,9 @@ fn main() -> ExitCode {
             batch,
             refine,
             tolerance,
+            gradient_tolerance,
             all_hypotheses,
+            no_robust,
             odometry,
             out,
             json,
@@ -445,9 +536,15 @@ fn main() -> ExitCode {
                 file: &batch.file,
                 order: batch.order.into(),
                 config: batch.config(),
+                robust: (!no_robust).then(|| so2lin::batch::RobustConfig {
+                    alpha: batch.config().screening.alpha,
+                    ..Default::default()
+                }),
                 refine: so2lin::refine::RefineConfig {
                     iterations: refine,
                     relative_decrease: tolerance,
+                    gradient_tolerance,
+                    ..Default::default()
                 },
                 all_hypotheses,
                 odometry,
@@ -720,26 +817,23 @@ fn print_stats(s: &GraphStats) {
     }
 }
 
-fn simulate(config: &SimConfig, out: &Path) -> CliResult {
+fn simulate(config: &SimConfig, outliers: &OutlierConfig, out: &Path) -> CliResult {
     let world = sim::simulate(config).map_err(|e| e.to_string())?;
-    let create = |p: &Path| File::create(p).map_err(|e| format!("{}: {e}", p.display()));
-    let mut w = BufWriter::new(create(out)?);
-    io::write_g2o(&mut w, &world.graph, None).map_err(|e| format!("{}: {e}", out.display()))?;
     let truth_path = out.with_extension("truth.json");
-    let mut t = BufWriter::new(create(&truth_path)?);
-    serde_json::to_writer(
-        &mut t,
-        &json!({ "config": world.config, "truth": world.truth }),
-    )
-    .map_err(|e| format!("{}: {e}", truth_path.display()))?;
-    t.flush()
-        .map_err(|e| format!("{}: {e}", truth_path.display()))?;
-    let s = world.graph.stats();
+    let corrupted = sim::inject_outliers(&world.graph, outliers).map_err(|e| e.to_string())?;
+    let extra = json!({
+        "config": world.config,
+        "truth": world.truth,
+        "truth_note": "truth.wraps and truth.noise are per genuine edge, in file order with the false edges left out",
+    });
+    inject::write_corrupted(&corrupted, outliers, out, Some(&truth_path), extra)?;
+    let s = corrupted.graph.stats();
     println!(
-        "wrote {} ({} nodes, {} edges, {} cycles) and {}",
+        "wrote {} ({} nodes, {} edges of which {} false loop closures, {} cycles) and {}",
         out.display(),
         s.nodes,
         s.edges,
+        corrupted.false_edges.len(),
         s.cycles,
         truth_path.display()
     );
@@ -772,7 +866,7 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
     let truth = so2lin::wraps::gamma_of(&r.basis.cycles, &world.truth.wraps);
     let best_is_truth = r.hypotheses.first().is_some_and(|h| r.gamma(h) == truth);
     println!(
-        "batch screening ({} basis, α = {}, {} dof): {} of {} cycles determined, {} ambiguous, {}, {:.1} ms",
+        "batch screening ({} basis, family-wise α = {}: each cycle at α/(2ℓ), joint test at α/2; {} dof): {} of {} cycles determined, {} ambiguous, {}, {:.1} ms",
         basis_name(cfg.basis),
         cfg.screening.alpha,
         cfg.screening.dof,
@@ -792,7 +886,19 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
             "differs from"
         }
     );
-    println!("  success probability ≥ {:.6}", r.success_lower_bound);
+    for c in &r.inconsistent {
+        println!("  {c}");
+    }
+    if matches!(r.outcome, so2lin::batch::SecondOutcome::NoneInside) {
+        println!(
+            "  second screening: no candidate vector passes the joint χ² test at level {}",
+            cfg.screening.joint_level()
+        );
+    }
+    println!(
+        "  success probability ≥ {:.6} (integer bootstrapping, if the noise is as declared)",
+        r.success_lower_bound
+    );
     if let Some(e) = est {
         let err: Vec<f64> = world
             .truth
@@ -833,10 +939,11 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
         == r.hypotheses.first().map(|h| r.gamma(h));
     let c = est.counters();
     println!(
-        "online estimator: {} edges in {stream_ms:.1} ms (recording on a writer thread): {} determined, {} ambiguous; finish() {} the batch answer",
+        "online estimator (family-wise by α-spending: cycle t at level α_t, Σ α_t ≤ α/2): {} edges in {stream_ms:.1} ms (recording on a writer thread): {} determined, {} ambiguous, {} failed their test; finish() {} the batch answer",
         c.steps,
         c.determined,
         c.ambiguous,
+        c.inconsistent,
         if same { "gives" } else { "differs from" }
     );
     let bytes = std::fs::read(&path).map_err(|e| format!("{}: {e}", path.display()))?;
@@ -861,10 +968,11 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
         let baseline =
             so2lin::refine::refine(&world.graph, &odometry, &refine).map_err(|e| e.to_string())?;
         println!(
-            "poses: SE(2) cost {:.1} (linear) → {:.1} after {} refinement iterations ({:.1} ms); the same refinement from odometry: {:.1} → {:.1}",
+            "poses: SE(2) cost {:.1} (linear) → {:.1} after {} refinement iterations, {} ({:.1} ms); the same refinement from odometry: {:.1} → {:.1}",
             s.cost_linear,
             s.refined.cost(),
             s.refined.iterations,
+            s.refined.stop,
             1e3 * s.seconds,
             baseline.costs.first().copied().unwrap_or(f64::NAN),
             baseline.cost()

@@ -136,16 +136,20 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
         r.basis.max_length(),
         r.basis_seconds
     );
+    let ell = r.model.len();
     println!(
-        "first screening (α = {}, {} dof, {}; q = {:.3})",
-        s.alpha,
-        s.dof,
+        "first screening ({}; {} dof, q = {:.3})",
         if s.family_wise {
-            "family-wise α/ℓ"
+            format!(
+                "family-wise α = {}: each cycle at α/(2ℓ) = {:.2e}, joint test at α/2",
+                s.alpha,
+                s.level(ell)
+            )
         } else {
-            "per cycle"
+            format!("per cycle: each cycle at α = {}", s.alpha)
         },
-        s.quantile(r.model.len())
+        s.dof,
+        s.quantile(ell)
     );
     print_table(&r.first);
     match r.outcome {
@@ -165,7 +169,9 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
             ),
         },
         SecondOutcome::NoneInside => println!(
-            "second screening: no candidate vector passes the joint test (inconsistent data); showing the bootstrapped answer"
+            "second screening: no candidate vector of the {} ambiguous cycles passes the joint χ² test at level {} (the measurements disagree with their declared noise, or hold an outlier); showing the bootstrapped answer",
+            r.ambiguous.len(),
+            s.joint_level()
         ),
         SecondOutcome::Complete if r.second.is_empty() => {
             println!(
@@ -180,16 +186,14 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
     }
     if !r.inconsistent.is_empty() {
         println!(
-            "inconsistent cycles (interval without an integer): {}",
+            "{} cycles failed their consistency test (no integer within q conditional standard deviations of the mean):",
             r.inconsistent.len()
         );
         for c in r.inconsistent.iter().take(10) {
             println!(
-                "  cycle {} ({} edges, first {:?}): residual {:.2} σ",
-                c.cycle,
+                "  {c} ({} edges, first {:?})",
                 c.edges.len(),
-                &c.edges[..c.edges.len().min(4)],
-                c.residual
+                &c.edges[..c.edges.len().min(4)]
             );
         }
     }

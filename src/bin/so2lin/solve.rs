@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use serde_json::json;
 
-use so2lin::batch::{self, BatchConfig, BatchResult, Solution};
+use so2lin::batch::{self, BatchConfig, BatchResult, RobustConfig, Solution};
 use so2lin::estimate::{OrientationEstimator, odometry_poses};
 use so2lin::graph::PoseGraph;
 use so2lin::io::InfoOrder;
@@ -19,6 +19,8 @@ pub struct SolveArgs<'a> {
     pub config: BatchConfig,
     pub refine: RefineConfig,
     pub all_hypotheses: bool,
+    /// The DCS kernel on loop closures (None: plain least squares).
+    pub robust: Option<RobustConfig>,
     pub odometry: bool,
     pub out: Option<&'a Path>,
     pub json: bool,
@@ -39,9 +41,27 @@ pub fn solve_graph(
     refine: &RefineConfig,
     all: bool,
 ) -> Result<Solved, String> {
+    solve_graph_with(graph, config, refine, all, None)
+}
+
+/// [`solve_graph`], with the robust kernel when `robust` is set.
+pub fn solve_graph_with(
+    graph: &PoseGraph,
+    config: &BatchConfig,
+    refine: &RefineConfig,
+    all: bool,
+    robust: Option<&RobustConfig>,
+) -> Result<Solved, String> {
     let t = Instant::now();
     let screening = batch::screen(graph, config).map_err(|e| e.to_string())?;
-    solve_screened(graph, screening, t.elapsed().as_secs_f64(), refine, all)
+    solve_screened_with(
+        graph,
+        screening,
+        t.elapsed().as_secs_f64(),
+        refine,
+        all,
+        robust,
+    )
 }
 
 /// Solve the best hypothesis of a screening, or all of them.
@@ -52,11 +72,27 @@ pub fn solve_screened(
     refine: &RefineConfig,
     all: bool,
 ) -> Result<Solved, String> {
+    solve_screened_with(graph, screening, screen_seconds, refine, all, None)
+}
+
+/// [`solve_screened`], with the robust kernel when `robust` is set.
+pub fn solve_screened_with(
+    graph: &PoseGraph,
+    screening: BatchResult,
+    screen_seconds: f64,
+    refine: &RefineConfig,
+    all: bool,
+    robust: Option<&RobustConfig>,
+) -> Result<Solved, String> {
     let orient = OrientationEstimator::new(graph).map_err(|e| e.to_string())?;
     let take = if all { screening.hypotheses.len() } else { 1 };
     let mut solutions = Vec::with_capacity(take);
     for (i, h) in screening.hypotheses.iter().take(take).enumerate() {
-        let s = batch::solve(graph, &screening, &orient, h, refine).map_err(|e| e.to_string())?;
+        let s = match robust {
+            Some(rc) => batch::solve_robust(graph, &screening, &orient, h, refine, rc),
+            None => batch::solve(graph, &screening, &orient, h, refine),
+        }
+        .map_err(|e| e.to_string())?;
         solutions.push((i, s));
     }
     solutions.sort_by(|a, b| a.1.refined.cost().total_cmp(&b.1.refined.cost()));
@@ -71,7 +107,13 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
     let t0 = Instant::now();
     let (graph, _) = crate::load(args.file, args.order)?;
     let read_seconds = t0.elapsed().as_secs_f64();
-    let solved = solve_graph(&graph, &args.config, &args.refine, args.all_hypotheses)?;
+    let solved = solve_graph_with(
+        &graph,
+        &args.config,
+        &args.refine,
+        args.all_hypotheses,
+        args.robust.as_ref(),
+    )?;
     let total = t0.elapsed().as_secs_f64();
     let baseline = args.odometry.then(|| {
         let t = Instant::now();
@@ -97,9 +139,13 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
                     "chi2_orientation": s.chi2_orientation,
                     "cost_linear": s.cost_linear,
                     "cost_refined": s.refined.cost(),
+                    "cost_refined_all_edges": so2lin::refine::cost(&graph, &s.refined.poses),
+                    "rejected_edges": s.rejected,
                     "refine_costs": s.refined.costs,
                     "iterations": s.refined.iterations,
                     "converged": s.refined.converged,
+                    "stop": s.refined.stop,
+                    "refinement": s.refined.stop.to_string(),
                     "seconds": s.seconds,
                 })
             })
@@ -115,6 +161,7 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
             "best": solved.solutions.first().map(|(i, _)| i),
             "odometry": baseline.as_ref().map(|(b, s)| odometry_json(b, *s)),
             "refine": args.refine,
+            "robust": args.robust,
             "read_seconds": read_seconds,
             "screen_seconds": solved.screen_seconds,
             "total_seconds": total,
@@ -133,30 +180,53 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
         1e3 * solved.screen_seconds
     );
     println!(
-        "{:>4} {:>14} {:>16} {:>16} {:>6} {:>9}",
+        "{:>4} {:>14} {:>16} {:>16} {:>6} {:>9}  refinement",
         "hyp", "χ² orient.", "cost linear", "cost refined", "iters", "ms"
     );
     for (i, s) in &solved.solutions {
         println!(
-            "{:>4} {:>14.4} {:>16.6e} {:>16.6e} {:>6} {:>9.1}",
+            "{:>4} {:>14.4} {:>16.6e} {:>16.6e} {:>6} {:>9.1}  {}",
             i,
             s.chi2_orientation,
             s.cost_linear,
             s.refined.cost(),
             s.refined.iterations,
-            1e3 * s.seconds
+            1e3 * s.seconds,
+            s.refined.stop
         );
     }
-    if let Some((i, _)) = solved.solutions.first() {
+    if let Some((i, best)) = solved.solutions.first() {
         println!("best: hypothesis {i} (lowest refined cost)");
+        match (&args.robust, best.rejected.len()) {
+            (None, _) => println!("robust kernel: off (plain least squares on every edge)"),
+            (Some(_), 0) => {
+                println!("robust kernel (DCS on loop closures): no loop closure rejected")
+            }
+            (Some(rc), n) => {
+                println!(
+                    "robust kernel (DCS on loop closures): {n} rejected (SE(2) χ²_e above the family-wise threshold Φ = {:.1}, α = {}); the refined cost is over the other edges, and the screening's success bound and p-values were computed with these edges included",
+                    best.rejected[0].threshold, rc.alpha
+                );
+                for r in best.rejected.iter().take(10) {
+                    println!(
+                        "  edge {} ({} → {}): χ² = {:.1}",
+                        r.edge, r.from, r.to, r.statistic
+                    );
+                }
+                if n > 10 {
+                    println!("  … {} more (--json lists all)", n - 10);
+                }
+            }
+        }
     }
     if let Some((b, s)) = &baseline {
         println!(
-            "odometry start, same refinement: cost {:.6e} → {:.6e} ({} iterations, {:.1} ms)",
+            "odometry start, same refinement: cost {:.6e} → {:.6e} ({} iterations, {:.1} ms, {})",
             b.costs.first().copied().unwrap_or(f64::NAN),
             b.cost(),
             b.iterations,
-            1e3 * s
+            1e3 * s,
+            b.stop
         );
     }
     println!("total {:.1} ms", 1e3 * total);
@@ -169,6 +239,8 @@ fn odometry_json(b: &Refined, seconds: f64) -> serde_json::Value {
         "cost_refined": b.cost(),
         "refine_costs": b.costs,
         "iterations": b.iterations,
+        "converged": b.converged,
+        "stop": b.stop,
         "seconds": seconds,
     })
 }

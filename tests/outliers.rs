@@ -1,0 +1,251 @@
+//! The outlier benchmark (METHOD.md §11): false loop closures injected by the Vertigo protocol
+//! (`sim::inject_outliers`, `so2lin simulate --outliers`, `so2lin inject`), and the robust
+//! kernel of `batch::solve_robust` against them.
+//!
+//! "Reaches the outlier-free solution" means: the solution's SE(2) cost on the clean graph is
+//! within 1 % of the clean graph's own optimum (the criterion).
+
+mod common;
+
+use std::process::Command;
+
+use so2lin::batch::{BatchConfig, RobustConfig, screen, solve, solve_robust};
+use so2lin::estimate::OrientationEstimator;
+use so2lin::graph::PoseGraph;
+use so2lin::refine::{RefineConfig, cost};
+use so2lin::sim::{OutlierConfig, OutlierKind, SimConfig, inject_outliers, simulate};
+
+/// The plain solution of the best hypothesis (clean optimum).
+fn plain(g: &PoseGraph) -> so2lin::batch::Solution {
+    let r = screen(g, &BatchConfig::default()).unwrap();
+    let orient = OrientationEstimator::new(g).unwrap();
+    solve(g, &r, &orient, &r.hypotheses[0], &RefineConfig::default()).unwrap()
+}
+
+fn robust(g: &PoseGraph) -> so2lin::batch::Solution {
+    let r = screen(g, &BatchConfig::default()).unwrap();
+    let orient = OrientationEstimator::new(g).unwrap();
+    let cfg = RobustConfig::default();
+    solve_robust(
+        g,
+        &r,
+        &orient,
+        &r.hypotheses[0],
+        &RefineConfig::default(),
+        &cfg,
+    )
+    .unwrap()
+}
+
+/// On clean worlds the kernel changes nothing: no loop closure rejected, the same optimum.
+#[test]
+fn the_kernel_leaves_clean_worlds_alone() {
+    let mut rejected_worlds = 0;
+    for seed in 0..10u64 {
+        let w = simulate(&SimConfig::new(400, 300 + seed)).unwrap();
+        let p = plain(&w.graph);
+        let r = robust(&w.graph);
+        rejected_worlds += usize::from(!r.rejected.is_empty());
+        if r.rejected.is_empty() {
+            let (a, b) = (p.refined.cost(), r.refined.cost());
+            assert!((a - b).abs() <= 1e-6 * a, "seed {seed}: {a} vs {b}");
+        }
+    }
+    // The rejection test is family-wise at α = 0.01: a world with a rejection is possible
+    // but rare; two in ten would be a 1-in-2000 event.
+    assert!(
+        rejected_worlds <= 1,
+        "{rejected_worlds} clean worlds had rejections"
+    );
+}
+
+/// Simulated worlds (noise as declared) with K false loop closures: the robust solution is
+/// the outlier-free one in at least 5 of 6 worlds for each setting (measured: 6 of 6), and
+/// over all runs at least 95 % of the rejected edges are false.
+#[test]
+fn the_kernel_reaches_the_outlier_free_solution_on_simulated_worlds() {
+    let mut ok = [0usize; 3];
+    let mut runs = [0usize; 3];
+    let (mut rejected_all, mut rejected_false) = (0usize, 0usize);
+    for seed in 0..6u64 {
+        let w = simulate(&SimConfig::new(400, 700 + seed)).unwrap();
+        let clean = plain(&w.graph).refined.cost();
+        for (slot, (k, kind)) in [
+            (1, OutlierKind::Random),
+            (10, OutlierKind::Random),
+            (10, OutlierKind::Clustered),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let c = inject_outliers(
+                &w.graph,
+                &OutlierConfig {
+                    count: k,
+                    kind,
+                    seed,
+                },
+            )
+            .unwrap();
+            let r = robust(&c.graph);
+            let on_clean = cost(&w.graph, &r.refined.poses);
+            let success = on_clean <= 1.01 * clean;
+            let false_rejected = r.rejected.iter().filter(|x| c.is_false(x.edge)).count();
+            rejected_all += r.rejected.len();
+            rejected_false += false_rejected;
+            println!(
+                "seed {seed} K = {k} {kind:?}: clean-graph cost {on_clean:.1} vs {clean:.1}; rejected {} ({false_rejected} false of {k})",
+                r.rejected.len()
+            );
+            runs[slot] += 1;
+            ok[slot] += usize::from(success);
+        }
+    }
+    println!(
+        "reached the outlier-free solution: K=1 random {}/{}, K=10 random {}/{}, K=10 clustered {}/{}",
+        ok[0], runs[0], ok[1], runs[1], ok[2], runs[2]
+    );
+    assert!(ok.iter().all(|&k| k >= 5), "{ok:?} of {runs:?}");
+    assert!(
+        rejected_false as f64 >= 0.95 * rejected_all as f64,
+        "{rejected_false} of {rejected_all} rejected are false"
+    );
+}
+
+/// `so2lin simulate --outliers` lists its false edges; `so2lin inject` adds K more to a file.
+#[test]
+fn cli_simulate_and_inject_write_the_false_edges() {
+    let dir = std::env::temp_dir().join(format!("so2lin-outliers-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let bin = env!("CARGO_BIN_EXE_so2lin");
+    let world = dir.join("w.g2o");
+    let st = Command::new(bin)
+        .args([
+            "simulate",
+            "--poses",
+            "300",
+            "--seed",
+            "2",
+            "--outliers",
+            "12",
+        ])
+        .args(["--outlier-kind", "clustered", "--out"])
+        .arg(&world)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let truth: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("w.truth.json")).unwrap()).unwrap();
+    let listed = truth["false_edges"].as_array().unwrap();
+    assert_eq!(listed.len(), 12);
+    let (g, _) = so2lin::io::read_graph(&world, Default::default()).unwrap();
+    for f in listed {
+        let e = g.edges()[f["edge"].as_u64().unwrap() as usize];
+        assert_eq!(e.from(), f["from"].as_u64().unwrap());
+        assert_eq!(e.to(), f["to"].as_u64().unwrap());
+    }
+    // Genuine edges are the simulated world's, in order.
+    let w = simulate(&SimConfig::new(300, 2)).unwrap();
+    assert_eq!(g.edge_count(), w.graph.edge_count() + 12);
+    let out = dir.join("w5.g2o");
+    let tj = dir.join("w5.json");
+    let st = Command::new(bin)
+        .arg("inject")
+        .arg(&world)
+        .args([
+            "--outliers",
+            "5",
+            "--kind",
+            "random",
+            "--seed",
+            "4",
+            "--out",
+        ])
+        .arg(&out)
+        .arg("--truth")
+        .arg(&tj)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let (g5, _) = so2lin::io::read_graph(&out, Default::default()).unwrap();
+    assert_eq!(g5.edge_count(), g.edge_count() + 5);
+    let t5: serde_json::Value = serde_json::from_slice(&std::fs::read(&tj).unwrap()).unwrap();
+    assert_eq!(t5["false_edges"].as_array().unwrap().len(), 5);
+    // Same as the library on the same graph (one implementation).
+    let lib = inject_outliers(
+        &g,
+        &OutlierConfig {
+            count: 5,
+            kind: OutlierKind::Random,
+            seed: 4,
+        },
+    )
+    .unwrap();
+    assert_eq!(lib.graph.edges(), g5.edges());
+    let bad = Command::new(bin)
+        .arg("inject")
+        .arg(&world)
+        .args(["--outliers", "5", "--kind", "sideways", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// M3500 with one injected random false loop closure (datasets required). Seed 1 is a case
+/// the residual test alone missed (the map bends to fit the false edge: cost on the clean
+/// graph +61 %); the leave-one-out test catches it.
+#[test]
+fn m3500_with_one_false_loop_closure() {
+    let Some(path) = common::dataset("M3500.g2o") else {
+        return;
+    };
+    let (g, _) = so2lin::io::read_graph(&path, Default::default()).unwrap();
+    let clean = plain(&g);
+    assert!(clean.rejected.is_empty());
+    let r0 = robust(&g);
+    assert!(r0.rejected.is_empty(), "clean M3500: {:?}", r0.rejected);
+    assert!((r0.refined.cost() - clean.refined.cost()).abs() <= 1e-6 * clean.refined.cost());
+    let c = inject_outliers(
+        &g,
+        &OutlierConfig {
+            count: 1,
+            kind: OutlierKind::Random,
+            seed: 1,
+        },
+    )
+    .unwrap();
+    let r = robust(&c.graph);
+    let on_clean = cost(&g, &r.refined.poses);
+    println!(
+        "M3500 + 1 false edge: clean-graph cost {on_clean:.2} vs {:.2}; rejected {:?}",
+        clean.refined.cost(),
+        r.rejected.iter().map(|x| x.edge).collect::<Vec<_>>()
+    );
+    assert!(on_clean <= 1.01 * clean.refined.cost());
+    assert!(r.rejected.iter().all(|x| c.is_false(x.edge)));
+}
+
+/// The kernel rejects nothing on clean benchmark files and leaves their optimum unchanged
+/// (datasets required).
+#[test]
+fn the_kernel_leaves_clean_datasets_alone() {
+    for name in [
+        "intel.g2o",
+        "MIT.g2o",
+        "CSAIL.g2o",
+        "FR079.g2o",
+        "M3500b.g2o",
+    ] {
+        let Some(path) = common::dataset(name) else {
+            return;
+        };
+        let (g, _) = so2lin::io::read_graph(&path, Default::default()).unwrap();
+        let p = plain(&g);
+        let r = robust(&g);
+        assert!(r.rejected.is_empty(), "{name}: {:?}", r.rejected);
+        let (a, b) = (p.refined.cost(), r.refined.cost());
+        assert!((a - b).abs() <= 1e-6 * a, "{name}: {a} vs {b}");
+    }
+}
