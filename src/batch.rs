@@ -1,11 +1,11 @@
-//! The batch pipeline of the paper (METHOD.md §2–§6, §8): basis → γ model → first screening
+//! The batch pipeline of the paper (method [§2](crate::method#2-cycles)–[§6](crate::method#6-which-cycle-basis), [§8](crate::method#8-success-probability)): basis → γ model → first screening
 //! (iterated) → second screening (iterated) → hypotheses with χ², p-value and the
 //! success-rate bound; then, per hypothesis, poses ([`solve`]): wraps → orientations θ* →
 //! least-squares positions → SE(2) refinement. It is the reference the online estimator is checked against, and it is
 //! only a driver: every formula lives in [`crate::cycles`], [`crate::gamma`],
 //! [`crate::screening`], [`crate::wraps`] and [`crate::estimate`].
 //!
-//! **Robust poses** ([`solve_robust`]): false loop closures (METHOD.md §11) are met with the
+//! **Robust poses** ([`solve_robust`]): false loop closures (method [§11](crate::method#11-false-loop-closures)) are met with the
 //! dynamic covariance scaling kernel (DCS, Agarwal et al. 2013) on loop closures (edges whose
 //! ids differ by more than 1; odometry keeps its weight): a loop closure with statistic χ²_e
 //! has its information scaled by
@@ -81,7 +81,7 @@ pub struct BatchResult {
     /// `C k = γ` for this basis, analysed once (integrality included).
     pub solver: WrapSolver,
     /// Set when the requested basis could not be used and the incremental basis replaced it
-    /// (a minimum basis that is not integral, METHOD.md §5).
+    /// (a minimum basis that is not integral, method [§5](crate::method#5-wraps-and-orientations)).
     pub fallback: Option<BasisFallback>,
     /// Time to build the basis (including a fallback and the integrality check).
     pub basis_seconds: f64,

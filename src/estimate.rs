@@ -1,4 +1,4 @@
-//! Orientation and position estimates for a hypothesis (METHOD.md §5, §8; the positions follow
+//! Orientation and position estimates for a hypothesis (method [§5](crate::method#5-wraps-and-orientations), [§8](crate::method#8-success-probability); the positions follow
 //! the paper's reference \[2\], LAGO).
 //!
 //! **Orientations.** For wraps k, the maximum-likelihood orientations are
@@ -12,7 +12,7 @@
 //! is factored once by a sparse Cholesky (faer, AMD ordering) and each hypothesis is one
 //! solve. Marginal variances are one solve per requested node (never a dense inverse). The
 //! cost of an estimate is `χ² = Σ_e (θ_j − θ_i − δ_e + 2πk_e)² / σ_e²`, which equals
-//! `(γ − μ)ᵀ P_γ⁻¹ (γ − μ)` for `γ = Ck` (METHOD.md §2).
+//! `(γ − μ)ᵀ P_γ⁻¹ (γ − μ)` for `γ = Ck` (method [§2](crate::method#2-cycles)).
 //!
 //! **Positions.** With the orientations fixed at θ*, each edge's measured translation `t_e`
 //! (in the frame of its tail `i`) becomes a linear measurement of `p_j − p_i = R(θ*_i) t_e`;

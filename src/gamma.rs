@@ -1,4 +1,4 @@
-//! The γ model: the cycle integers as a Gaussian (METHOD.md §2, §3, §7).
+//! The γ model: the cycle integers as a Gaussian (method [§2](crate::method#2-cycles), [§3](crate::method#3-first-screening), [§7](crate::method#7-online-estimation)).
 //!
 //! For a cycle basis `C`, `γ = C k ∈ Z^ℓ` and `γ ~ N(μ, P_γ)` with
 //!
@@ -26,7 +26,7 @@
 //! [`Conditioner::reorder`] now and then to rebuild L in a fill-reducing order (approximate
 //! minimum degree); the moments are order-independent. The diagonal of L
 //! holds the sequential conditional standard deviations (the integer-bootstrapping `s_i` of
-//! METHOD.md §8), and `‖z‖² = (u − μ)ᵀ P_UU⁻¹ (u − μ)`.
+//! method [§8](crate::method#8-success-probability)), and `‖z‖² = (u − μ)ᵀ P_UU⁻¹ (u − μ)`.
 
 use std::f64::consts::TAU;
 

@@ -1,4 +1,4 @@
-//! The online estimator (METHOD.md §7): tree, cycle basis, γ model and screening grown one
+//! The online estimator (method [§7](crate::method#7-online-estimation), [§10](crate::method#10-the-estimate-online)): tree, cycle basis, γ model and screening grown one
 //! edge at a time.
 //!
 //! Each edge either reaches a new node or joins two components (a **tree edge**: no new
@@ -246,6 +246,17 @@ struct CondRenewal {
     /// Determinations (positions in the live factor's order) replayed into `fresh`.
     replayed: usize,
     ready_at: u64,
+}
+
+impl std::fmt::Debug for OnlineEstimator {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("OnlineEstimator")
+            .field("config", &self.config)
+            .field("nodes", &self.graph.node_count())
+            .field("edges", &self.graph.edge_count())
+            .field("counters", &self.counters)
+            .finish_non_exhaustive()
+    }
 }
 
 /// Below this many determined cycles L is never reordered (chronological fill is cheap).

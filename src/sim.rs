@@ -12,10 +12,10 @@
 //! ```
 //!
 //! with `wrap` into (−π, π], as a robot reports angles. True headings are also in (−π, π].
-//! The true wrap of each edge is therefore the integer of METHOD.md §1,
+//! The true wrap of each edge is therefore the integer of method [§1](crate::method#1-model),
 //! `k_e = (δ_e − ε_e − (θ_j − θ_i)) / 2π`, recorded with the noise in [`GroundTruth`].
 //!
-//! **False loop closures** ([`inject_outliers`], METHOD.md §11, the Vertigo protocol of
+//! **False loop closures** ([`inject_outliers`], method [§11](crate::method#11-false-loop-closures), the Vertigo protocol of
 //! Sünderhauf & Protzel): K false edges are added to any graph, either between K random node
 //! pairs (`random`), or in groups of 10 between two regions, edge k of a group joining the k-th
 //! nodes after two random starts and all edges of a group sharing one measurement

@@ -283,4 +283,9 @@ fn answers_do_not_depend_on_what_was_read() {
     assert_eq!(read.orientations().unwrap(), quiet.orientations().unwrap());
     assert_eq!(read.poses().unwrap(), quiet.poses().unwrap());
     assert_eq!(read.newest().unwrap(), quiet.newest().unwrap());
+    let shown = format!("{read:?}");
+    assert!(
+        shown.contains("OnlineEstimator") && shown.contains("nodes: 1500"),
+        "{shown}"
+    );
 }

@@ -6,7 +6,7 @@ use std::time::Instant;
 use serde_json::{Value, json};
 
 use so2lin::estimate::OrientationEstimator;
-use so2lin::io::{InfoOrder, Reader};
+use so2lin::io::InfoOrder;
 use so2lin::log::{LogOptions, Recorder};
 use so2lin::online::{OnlineConfig, OnlineEstimator, StepKind, robot_order};
 
@@ -90,11 +90,11 @@ pub fn peak_rss_bytes() -> Option<u64> {
 pub fn run(args: StreamArgs) -> Result<(), String> {
     let start = Instant::now();
     let mut est = OnlineEstimator::new(args.config).map_err(|e| e.to_string())?;
-    let mut reader = Reader::open(args.file, args.info_order).map_err(|e| e.to_string())?;
-    let edges: Vec<_> = reader
-        .edges()
-        .collect::<Result<_, _>>()
-        .map_err(|e| e.to_string())?;
+    // Skipped lines are reported and a file without a 2D edge is an error, as for every
+    // command.
+    let (graph, _) = crate::load(args.file, args.info_order)?;
+    let edges = graph.edges().to_vec();
+    drop(graph);
     let edges = match args.edge_order {
         EdgeOrder::Robot => robot_order(&edges),
         EdgeOrder::File => edges,
