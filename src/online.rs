@@ -549,8 +549,9 @@ impl OnlineEstimator {
         }
         let determined = self.screener.cond.determined();
         let model = self.model.clone();
-        let delay = laplacian::MIN_DELAY
-            .max((self.screener.cond.factor_nnz() as f64 * laplacian::DELAY_PER_ROW) as u64);
+        // The rebuilt factor is small (fill-reducing order) while the live one keeps filling:
+        // collect it soon (the builder's work grows with the rows, not with the live fill).
+        let delay = laplacian::MIN_DELAY.max(rows as u64 / 64);
         let job = move || Conditioner::rebuilt(&model, &determined, 0).ok();
         let (handle, fresh) = match std::thread::Builder::new()
             .name("so2lin-reorder".into())
