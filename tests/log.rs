@@ -307,3 +307,37 @@ fn caller_times_and_the_newest_pose_are_in_every_step() {
     let replay = so2lin::log::replay(&log, true).unwrap();
     assert_eq!(replay.steps, w.graph.edge_count());
 }
+
+/// A valid graph whose angle information alternates 1e12 and 1e-12 (issue: the writer's
+/// snapshot solve failed at a snapshot and every later step was dropped): every step is
+/// recorded and replays, whatever the snapshots do, and a snapshot that cannot be computed
+/// would be said on `/so2lin/log`, never cost a step.
+#[test]
+fn extreme_information_never_costs_a_step() {
+    let w = simulate(&SimConfig::new(400, 9)).unwrap();
+    let edges: Vec<Edge> = w
+        .graph
+        .edges()
+        .iter()
+        .enumerate()
+        .map(|(k, e)| {
+            let info = so2lin::graph::Information::diagonal(
+                100.0,
+                100.0,
+                if k % 2 == 0 { 1e12 } else { 1e-12 },
+            );
+            Edge::new(e.from(), e.to(), e.measurement(), info).unwrap()
+        })
+        .collect();
+    let options = LogOptions {
+        snapshot_every: 7,
+        ..LogOptions::default()
+    };
+    let (bytes, _) = record(&edges, options);
+    let log = read_log(&bytes).unwrap();
+    assert!(log.truncated.is_none(), "{:?}", log.truncated);
+    assert_eq!(log.steps.len(), edges.len());
+    let replay = so2lin::log::replay(&log, true).unwrap();
+    assert!(replay.divergence.is_none());
+    assert_eq!(replay.steps, edges.len());
+}
