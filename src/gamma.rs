@@ -145,9 +145,6 @@ impl GammaModel {
     /// [`Conditioner`]: approximate minimum degree (faer) on the pattern of `P_γ` restricted to
     /// the set. Conditioning is order-independent; only the fill of L (speed) changes.
     pub fn fill_reducing_order(&self, set: &[usize]) -> Vec<usize> {
-        use faer::dyn_stack::{MemBuffer, MemStack};
-        use faer::sparse::SymbolicSparseColMatRef;
-        use faer::sparse::linalg::amd;
         let k = set.len();
         let mut local = vec![u32::MAX; self.len()];
         for (p, &c) in set.iter().enumerate() {
@@ -166,18 +163,9 @@ impl GammaModel {
             );
             col_ptr.push(row_idx.len());
         }
-        let pattern = SymbolicSparseColMatRef::new_checked(k, k, &col_ptr, None, &row_idx);
-        let (mut perm, mut perm_inv) = (vec![0usize; k], vec![0usize; k]);
-        let mut mem = MemBuffer::new(amd::order_scratch::<usize>(k, row_idx.len()));
-        match amd::order(
-            &mut perm,
-            &mut perm_inv,
-            pattern,
-            amd::Control::default(),
-            MemStack::new(&mut mem),
-        ) {
-            Ok(_) => perm.iter().map(|&p| set[p]).collect(),
-            Err(_) => set.to_vec(),
+        match crate::estimate::incremental::amd_order(&col_ptr, &row_idx) {
+            Some(perm) => perm.iter().map(|&p| set[p]).collect(),
+            None => set.to_vec(),
         }
     }
 

@@ -241,11 +241,9 @@ pub struct OnlineEstimator {
 
 /// A renewal of the P_UU factor built beside the live one ([`OnlineEstimator::maybe_reorder`]).
 struct CondRenewal {
-    handle: Option<std::thread::JoinHandle<Option<Conditioner>>>,
-    fresh: Option<Conditioner>,
-    /// Determinations (positions in the live factor's order) replayed into `fresh`.
+    build: laplacian::Beside<Conditioner>,
+    /// Determinations (positions in the live factor's order) replayed into the new factor.
     replayed: usize,
-    ready_at: u64,
 }
 
 impl std::fmt::Debug for OnlineEstimator {
@@ -553,47 +551,29 @@ impl OnlineEstimator {
         // collect it soon (the builder's work grows with the rows, not with the live fill).
         let delay = laplacian::MIN_DELAY.max(rows as u64 / 64);
         let job = move || Conditioner::rebuilt(&model, &determined, 0).ok();
-        let (handle, fresh) = match std::thread::Builder::new()
-            .name("so2lin-reorder".into())
-            .spawn(job)
-        {
-            Ok(h) => (Some(h), None),
-            Err(_) => (
-                None,
-                Conditioner::rebuilt(&self.model, &self.screener.cond.determined(), 0).ok(),
-            ),
-        };
-        self.renewal = Some(CondRenewal {
-            handle,
-            fresh,
-            replayed: rows,
-            ready_at: self.counters.steps as u64 + delay,
-        });
+        let ready_at = self.counters.steps as u64 + delay;
+        if let Some(build) = laplacian::Beside::start("so2lin-reorder", ready_at, job) {
+            self.renewal = Some(CondRenewal {
+                build,
+                replayed: rows,
+            });
+        }
     }
 
     /// Advance a renewal of the P_UU factor (see [`Self::maybe_reorder`]).
     fn advance_reorder(&mut self) {
         let Some(r) = &mut self.renewal else { return };
-        if r.fresh.is_none() {
-            if (self.counters.steps as u64) < r.ready_at {
-                return;
-            }
-            let Some(h) = r.handle.take() else {
+        let fresh = match r
+            .build
+            .poll(self.counters.steps as u64, &mut self.cond_waits)
+        {
+            Ok(Some(f)) => f,
+            Ok(None) => return,
+            Err(()) => {
                 self.renewal = None;
                 return;
-            };
-            if !h.is_finished() {
-                self.cond_waits += 1;
             }
-            match h.join() {
-                Ok(Some(f)) => r.fresh = Some(f),
-                _ => {
-                    self.renewal = None;
-                    return;
-                }
-            }
-        }
-        let Some(fresh) = &mut r.fresh else { return };
+        };
         let live = &self.screener.cond;
         let end = (r.replayed + laplacian::REPLAY_PER_STEP).min(live.len());
         for &c in &live.order()[r.replayed..end] {
@@ -608,8 +588,9 @@ impl OnlineEstimator {
         if r.replayed < live.len() {
             return;
         }
-        let Some(fresh) = r.fresh.take() else { return };
-        self.renewal = None;
+        let Some(fresh) = self.renewal.take().and_then(|r| r.build.take()) else {
+            return;
+        };
         self.screener.cond = fresh;
         let rows = self.screener.cond.len().max(1);
         self.fill_after_reorder = self.screener.cond.factor_nnz() as f64 / rows as f64;

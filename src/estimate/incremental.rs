@@ -224,8 +224,17 @@ impl<const K: usize> SqrtInfo<K> {
 
     /// Change the right-hand side of an existing row `a` by `Δβ`: `d ← d + R⁻ᵀ a Δβ`.
     pub fn shift_rhs(&mut self, entries: &[(usize, f64)], delta: [f64; K]) {
+        self.forward(entries, |dk, y| {
+            for (dq, &sq) in dk.iter_mut().zip(&delta) {
+                *dq += y * sq;
+            }
+        });
+    }
+
+    /// Forward solve `Rᵀ y = a` on the positions it reaches (the elimination-tree paths of a's
+    /// variables), in increasing order: `visit(d_k, y_k)` for each of them.
+    fn forward(&mut self, entries: &[(usize, f64)], mut visit: impl FnMut(&mut [f64; K], f64)) {
         self.load(entries);
-        // Forward solve Rᵀ y = a on the positions reached (the etree path), in increasing order.
         let mut w = std::mem::take(&mut self.w);
         let mut next = std::mem::take(&mut self.w_next);
         let mut head = 0;
@@ -239,9 +248,7 @@ impl<const K: usize> SqrtInfo<K> {
             let (k, ak) = w[head];
             let k = k as usize;
             let y = ak / self.diag[k];
-            for (dq, &sq) in self.d[k].iter_mut().zip(&delta) {
-                *dq += y * sq;
-            }
+            visit(&mut self.d[k], y);
             // a_j -= R_kj y for j in row k, merged with the rest of w.
             next.clear();
             let row = &self.rows[k];
@@ -340,53 +347,8 @@ impl<const K: usize> SqrtInfo<K> {
     /// Variance of the combination `aᵀx`: `aᵀ(AᵀA)⁻¹a = ‖R⁻ᵀ a‖²` (one forward solve along
     /// the paths of a's variables; `a = e_v` gives a marginal variance).
     pub fn marginal(&mut self, entries: &[(usize, f64)]) -> f64 {
-        self.load(entries);
-        let mut w = std::mem::take(&mut self.w);
-        let mut next = std::mem::take(&mut self.w_next);
         let mut sum = 0.0;
-        let mut head = 0;
-        while head < w.len() {
-            let (k, ak) = w[head];
-            let k = k as usize;
-            let y = ak / self.diag[k];
-            sum += y * y;
-            next.clear();
-            let row = &self.rows[k];
-            let (mut i, mut j) = (0, head + 1);
-            while i < row.len() || j < w.len() {
-                let (p, val) = match (row.get(i), w.get(j)) {
-                    (Some(&(pa, a)), Some(&(pb, b))) if pa == pb => {
-                        i += 1;
-                        j += 1;
-                        (pa, b - a * y)
-                    }
-                    (Some(&(pa, a)), Some(&(pb, _))) if pa < pb => {
-                        i += 1;
-                        (pa, -a * y)
-                    }
-                    (Some(_), Some(&(pb, b))) => {
-                        j += 1;
-                        (pb, b)
-                    }
-                    (Some(&(pa, a)), None) => {
-                        i += 1;
-                        (pa, -a * y)
-                    }
-                    (None, Some(&(pb, b))) => {
-                        j += 1;
-                        (pb, b)
-                    }
-                    (None, None) => unreachable!(),
-                };
-                if val != 0.0 {
-                    next.push((p, val));
-                }
-            }
-            std::mem::swap(&mut w, &mut next);
-            head = 0;
-        }
-        self.w = w;
-        self.w_next = next;
+        self.forward(entries, |_, y| sum += y * y);
         sum
     }
 
@@ -428,9 +390,6 @@ pub(crate) fn fill_reducing_order(
     edges: &[(usize, usize)],
     last: &[usize],
 ) -> Vec<usize> {
-    use faer::dyn_stack::{MemBuffer, MemStack};
-    use faer::sparse::SymbolicSparseColMatRef;
-    use faer::sparse::linalg::amd;
     let mut is_last = vec![false; n];
     for &v in last {
         is_last[v] = true;
@@ -462,21 +421,34 @@ pub(crate) fn fill_reducing_order(
         row_idx.extend_from_slice(list);
         col_ptr.push(row_idx.len());
     }
-    let pattern = SymbolicSparseColMatRef::new_checked(k, k, &col_ptr, None, &row_idx);
+    let mut order: Vec<usize> = match amd_order(&col_ptr, &row_idx) {
+        Some(perm) => perm.iter().map(|&p| free[p]).collect(),
+        None => free.clone(),
+    };
+    order.extend_from_slice(last);
+    order
+}
+
+/// Approximate minimum degree (faer) of a symmetric pattern given by columns (`col_ptr`,
+/// `row_idx`, rows ascending): the permutation, or None if faer refuses it. The one place
+/// both the orientation factor and the factor of P_γ get their fill-reducing orders.
+pub(crate) fn amd_order(col_ptr: &[usize], row_idx: &[usize]) -> Option<Vec<usize>> {
+    use faer::dyn_stack::{MemBuffer, MemStack};
+    use faer::sparse::SymbolicSparseColMatRef;
+    use faer::sparse::linalg::amd;
+    let k = col_ptr.len().checked_sub(1)?;
+    let pattern = SymbolicSparseColMatRef::new_checked(k, k, col_ptr, None, row_idx);
     let (mut perm, mut perm_inv) = (vec![0usize; k], vec![0usize; k]);
     let mut mem = MemBuffer::new(amd::order_scratch::<usize>(k, row_idx.len()));
-    let mut order: Vec<usize> = match amd::order(
+    amd::order(
         &mut perm,
         &mut perm_inv,
         pattern,
         amd::Control::default(),
         MemStack::new(&mut mem),
-    ) {
-        Ok(_) => perm.iter().map(|&p| free[p]).collect(),
-        Err(_) => free.clone(),
-    };
-    order.extend_from_slice(last);
-    order
+    )
+    .ok()
+    .map(|_| perm)
 }
 
 #[cfg(test)]

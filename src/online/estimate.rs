@@ -47,9 +47,9 @@ pub(crate) enum Op {
 pub(crate) struct Estimate {
     heads: Laplacian<1>,
     positions: Laplacian<2>,
-    isotropic: bool,
+    /// Some edge's translation information is not isotropic.
+    anisotropic: bool,
     pending: Vec<Op>,
-    started: bool,
 }
 
 /// `R(θ) t`: a relative translation in the world frame of a tail with heading θ.
@@ -74,10 +74,6 @@ impl Estimate {
 
     /// Apply the pending operations (in order).
     pub fn sync(&mut self, graph: &PoseGraph) {
-        if !self.started {
-            self.started = true;
-            self.isotropic = true;
-        }
         let pending = std::mem::take(&mut self.pending);
         for &op in &pending {
             match op {
@@ -93,7 +89,7 @@ impl Estimate {
                 Op::Position { e, a, b, y } => {
                     let edge = &graph.edges()[e as usize];
                     let o = edge.information().translation_information();
-                    self.isotropic &= o[0][1] == 0.0 && o[0][0] == o[1][1];
+                    self.anisotropic |= o[0][1] != 0.0 || o[0][0] != o[1][1];
                     let theta_a = if a > b {
                         self.heads.value(a as usize)[0]
                     } else {
@@ -154,7 +150,7 @@ impl Estimate {
     pub fn poses(&mut self, graph: &PoseGraph) -> Result<Vec<Pose2>, EstimateError> {
         self.sync(graph);
         let theta = self.heads.all(0);
-        if !self.isotropic {
+        if self.anisotropic {
             return crate::estimate::poses(graph, &theta);
         }
         let y = self.relinearised(graph);

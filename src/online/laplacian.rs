@@ -68,11 +68,60 @@ enum Event {
 }
 
 struct Renewal<const K: usize> {
-    handle: Option<JoinHandle<Option<SqrtInfo<K>>>>,
-    fresh: Option<SqrtInfo<K>>,
+    build: Beside<SqrtInfo<K>>,
     events: Vec<Event>,
     replayed: usize,
+}
+
+/// A factor built beside the live one on another thread and collected at a step fixed when it
+/// was started (shared by the estimate's factors and the factor of P_γ, so the run does not
+/// depend on the threads' timing).
+pub(crate) struct Beside<T> {
+    handle: Option<JoinHandle<Option<T>>>,
+    fresh: Option<T>,
     ready_at: u64,
+}
+
+impl<T: Send + 'static> Beside<T> {
+    /// Start `job` on a thread named `name`, to be collected at step `ready_at`. None when no
+    /// thread can be started: the live factor goes on, and the owner may try again later.
+    pub fn start(
+        name: &str,
+        ready_at: u64,
+        job: impl FnOnce() -> Option<T> + Send + 'static,
+    ) -> Option<Self> {
+        let handle = std::thread::Builder::new()
+            .name(name.into())
+            .spawn(job)
+            .ok()?;
+        Some(Self {
+            handle: Some(handle),
+            fresh: None,
+            ready_at,
+        })
+    }
+
+    /// At step `step`: the built factor once its step has come (joining the builder, and
+    /// counting in `waits` a step that found it still busy), `Ok(None)` before, `Err(())` if
+    /// the build failed.
+    pub fn poll(&mut self, step: u64, waits: &mut usize) -> Result<Option<&mut T>, ()> {
+        if self.fresh.is_none() {
+            if step < self.ready_at {
+                return Ok(None);
+            }
+            let h = self.handle.take().ok_or(())?;
+            if !h.is_finished() {
+                *waits += 1;
+            }
+            self.fresh = Some(h.join().ok().flatten().ok_or(())?);
+        }
+        Ok(self.fresh.as_mut())
+    }
+
+    /// The built factor (after [`Self::poll`] gave it).
+    pub fn take(self) -> Option<T> {
+        self.fresh
+    }
 }
 
 /// The data a factor is built from (a snapshot goes to the builder thread).
@@ -304,46 +353,28 @@ impl<const K: usize> Laplacian<K> {
         let prior = self.prior.clone();
         let newest = n - 1;
         let delay = MIN_DELAY.max((self.factor.nnz() as f64 * DELAY_PER_ROW) as u64);
-        let handle = std::thread::Builder::new()
-            .name("so2lin-renew".into())
-            .spawn(move || Some(build(&rows, &prior, n, Some(newest))));
-        let (handle, fresh) = match handle {
-            Ok(h) => (Some(h), None),
-            // No thread: build here (a stall, but never a failure).
-            Err(_) => (None, Some(build(&self.rows, &self.prior, n, Some(newest)))),
+        let job = move || Some(build(&rows, &prior, n, Some(newest)));
+        let Some(build) = Beside::start("so2lin-renew", self.steps + delay, job) else {
+            return;
         };
         self.nodes_at_renewal = n;
         self.renewal = Some(Renewal {
-            handle,
-            fresh,
+            build,
             events: Vec::new(),
             replayed: 0,
-            ready_at: self.steps + delay,
         });
     }
 
     fn advance_renewal(&mut self) {
         let Some(r) = &mut self.renewal else { return };
-        if r.fresh.is_none() {
-            if self.steps < r.ready_at {
-                return;
-            }
-            let Some(h) = r.handle.take() else {
+        let fresh = match r.build.poll(self.steps, &mut self.waits) {
+            Ok(Some(f)) => f,
+            Ok(None) => return,
+            Err(()) => {
                 self.renewal = None;
                 return;
-            };
-            if !h.is_finished() {
-                self.waits += 1;
             }
-            match h.join() {
-                Ok(Some(f)) => r.fresh = Some(f),
-                _ => {
-                    self.renewal = None;
-                    return;
-                }
-            }
-        }
-        let Some(fresh) = &mut r.fresh else { return };
+        };
         let end = (r.replayed + REPLAY_PER_STEP).min(r.events.len());
         for ev in &r.events[r.replayed..end] {
             match *ev {
@@ -365,10 +396,9 @@ impl<const K: usize> Laplacian<K> {
         if r.replayed < r.events.len() {
             return;
         }
-        let Some(mut fresh) = r.fresh.take() else {
+        let Some(mut fresh) = self.renewal.take().and_then(|r| r.build.take()) else {
             return;
         };
-        self.renewal = None;
         reset_rhs(&mut fresh, &self.rows);
         self.fill_after_renewal = fresh.nnz() as f64 / self.len().max(1) as f64;
         self.factor = fresh;

@@ -212,7 +212,10 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
             crate::fixed(h.p_value, 4)
         );
     }
-    println!("success probability ≥ {:.6}", r.success_lower_bound);
+    println!(
+        "success probability ≥ {:.6} (integer bootstrapping; assumes the declared noise and all {} edges accepted, none rejected)",
+        r.success_lower_bound, r.edges
+    );
     println!(
         "seconds: read {read_s:.4}, basis {:.4}, screening {:.4}, estimate {estimate_s:.4}, total {total:.4}",
         r.basis_seconds, r.screening_seconds
