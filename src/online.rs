@@ -670,7 +670,8 @@ impl OnlineEstimator {
     /// Current pose of a node (None for an unknown node), read from the maintained factors
     /// along the node's path (O(1) for the newest node). The heading is exact. The position
     /// rows use the tail's heading **as estimated when the edge arrived** (all of them are
-    /// re-linearised at the current headings whenever the position factor's order is renewed),
+    /// re-linearised at the then current headings whenever a renewal of the position factor
+    /// starts, and used from its swap on),
     /// and the isotropic part of the translation information: like iSAM2 with a
     /// re-linearisation threshold, the fast answer lags heading corrections that loop closures
     /// make to old nodes; [`Self::poses`] is the exact answer on demand.

@@ -383,6 +383,92 @@ impl<const K: usize> SqrtInfo<K> {
     }
 }
 
+impl<const K: usize> SqrtInfo<K> {
+    /// The factor of the rows given, in the variable order `order`, computed at once: the
+    /// normal equations `AᵀA` in that order factored by a sparse Cholesky (faer, simplicial),
+    /// `R = Lᵀ`, then d by one forward solve. Far cheaper than rotating every row in; `None`
+    /// when the Cholesky meets a non-positive pivot (extreme weights: the caller rotates the
+    /// rows in instead, which is the better-conditioned QR).
+    pub fn factored<const N: usize>(
+        order: &[usize],
+        rows: impl Iterator<Item = ([(usize, f64); N], [f64; K])> + Clone,
+    ) -> Option<Self> {
+        use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
+        use faer::linalg::cholesky::llt::factor::LltRegularization;
+        use faer::sparse::linalg::cholesky::simplicial;
+        use faer::sparse::{SparseColMat, Triplet};
+        let mut f = Self::new();
+        for &v in order {
+            f.push_variable(v);
+        }
+        let n = order.len();
+        // The upper triangle of AᵀA in positions (duplicates are summed).
+        let mut triplets = Vec::new();
+        for (entries, _) in rows.clone() {
+            for &(u, a) in &entries {
+                for &(v, b) in &entries {
+                    let (pu, pv) = (f.pos_of[u] as usize, f.pos_of[v] as usize);
+                    if pu <= pv && a != 0.0 && b != 0.0 {
+                        triplets.push(Triplet::new(pu, pv, a * b));
+                    }
+                }
+            }
+        }
+        for p in 0..n {
+            triplets.push(Triplet::new(p, p, 0.0));
+        }
+        let a = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &triplets).ok()?;
+        let nnz = a.compute_nnz();
+        let mut mem = MemBuffer::try_new(StackReq::any_of(&[
+            simplicial::prefactorize_symbolic_cholesky_scratch::<usize>(n, nnz),
+            simplicial::factorize_simplicial_symbolic_cholesky_scratch::<usize>(n),
+            simplicial::factorize_simplicial_numeric_llt_scratch::<usize, f64>(n),
+        ]))
+        .ok()?;
+        let stack = MemStack::new(&mut mem);
+        let (mut etree, mut counts) = (vec![0isize; n], vec![0usize; n]);
+        let tree = simplicial::prefactorize_symbolic_cholesky(
+            &mut etree,
+            &mut counts,
+            a.symbolic(),
+            stack,
+        );
+        let symbolic =
+            simplicial::factorize_simplicial_symbolic_cholesky(a.symbolic(), tree, &counts, stack)
+                .ok()?;
+        let mut values = vec![0.0; symbolic.len_val()];
+        simplicial::factorize_simplicial_numeric_llt(
+            &mut values,
+            a.as_ref(),
+            LltRegularization::default(),
+            &symbolic,
+            stack,
+        )
+        .ok()?;
+        // Column j of L is row j of R: its diagonal, then the positions below it.
+        let (col_ptr, row_idx) = (symbolic.col_ptr(), symbolic.row_idx());
+        for j in 0..n {
+            let mut row: Vec<(u32, f64)> = Vec::with_capacity(col_ptr[j + 1] - col_ptr[j]);
+            for t in col_ptr[j]..col_ptr[j + 1] {
+                let i = row_idx[t];
+                if i == j {
+                    f.diag[j] = values[t];
+                } else if values[t] != 0.0 {
+                    row.push((i as u32, values[t]));
+                }
+            }
+            row.sort_unstable_by_key(|&(p, _)| p);
+            f.nnz += row.len();
+            f.rows[j] = row;
+        }
+        if f.diag.iter().any(|&r| !(r > 0.0 && r.is_finite())) {
+            return None;
+        }
+        f.reset_rhs(rows);
+        Some(f)
+    }
+}
+
 /// A fill-reducing order of the variables `0..n` of a graph with the given edges (approximate
 /// minimum degree, faer), with the variables in `last` appended at the end in that order.
 pub(crate) fn fill_reducing_order(
@@ -564,6 +650,29 @@ mod tests {
         };
         f.reset_rhs(rows.iter().map(|(a, b)| (pad(a), [*b])));
         check(&mut f, &rows);
+        // The same rows factored at once (Cholesky), in the same order: the same answers, and
+        // it grows and down-dates like the rotated one.
+        let mut g = SqrtInfo::<1>::factored(&vars, rows.iter().map(|(a, b)| (pad(a), [*b])))
+            .expect("positive definite");
+        assert_eq!(g.var_at, f.var_at);
+        check(&mut g, &rows);
+        let extra = (vec![(3, -1.5), (17, 1.5)], 0.25);
+        g.add_row(&extra.0, [extra.1]);
+        rows.push(extra);
+        check(&mut g, &rows);
+        let (a, b) = rows.pop().expect("the extra row");
+        g.remove_row(&a, [b]).unwrap();
+        check(&mut g, &rows);
+    }
+
+    /// A zero pivot (a variable no row touches) makes the Cholesky give up, not panic.
+    #[test]
+    fn factored_refuses_a_singular_system() {
+        let rows = [
+            ([(0, 1.0), (1, -1.0)], [0.5]),
+            ([(0, 1.0), (0, 0.0)], [0.0]),
+        ];
+        assert!(SqrtInfo::<1>::factored(&[0, 1, 2], rows.into_iter()).is_none());
     }
 
     #[test]

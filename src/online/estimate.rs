@@ -17,8 +17,9 @@
 //! `w = (Ω_t,xx + Ω_t,yy)/2` (exact when it is isotropic). So the fast answers
 //! ([`Estimate::pose`]) lag the heading corrections that later loop closures make to old nodes,
 //! like iSAM2 with a relinearisation threshold; every position row is re-linearised at the
-//! current headings whenever the position factor's order is renewed (a step-scheduled event, so
-//! the answers do not depend on what was read when). [`Estimate::poses`] is the exact answer on
+//! current headings whenever a renewal of the position factor's order starts (the renewed
+//! factor takes them; a step-scheduled event, so the answers do not depend on what was read
+//! when). [`Estimate::poses`] is the exact answer on
 //! demand, without changing the factor: every position row at the current headings (one forward
 //! and one back-substitution; a 2×2-block system solved from scratch when the translation
 //! information is not isotropic).
@@ -100,31 +101,17 @@ impl Estimate {
                     self.positions.add_edge(a as usize, b as usize, w, t);
                 }
                 Op::Step => {
-                    self.heads.after_step();
-                    let before = self.positions.renewals;
-                    self.positions.after_step();
-                    if self.positions.renewals != before {
-                        let y = self.relinearised(graph);
-                        self.positions.reset_y(y);
-                    }
+                    self.heads.after_step(|| None);
+                    // A renewal of the position factor takes every position row at the
+                    // current headings.
+                    let (heads, edges) = (&mut self.heads, self.positions.edge_count());
+                    self.positions
+                        .after_step(|| Some(relinearised(heads, graph, edges)));
                 }
             }
         }
         self.pending = pending;
         self.pending.clear();
-    }
-
-    /// Every position row at the current headings.
-    fn relinearised(&mut self, graph: &PoseGraph) -> Vec<[f64; 2]> {
-        let theta = self.heads.all(0);
-        let edges = self.positions.edge_count();
-        graph
-            .endpoints()
-            .iter()
-            .zip(graph.edges())
-            .take(edges)
-            .map(|(&(a, _), e)| rotate(theta[a], e.measurement()))
-            .collect()
     }
 
     /// Orientation of node v (O(1) for the newest).
@@ -153,7 +140,7 @@ impl Estimate {
         if self.anisotropic {
             return crate::estimate::poses(graph, &theta);
         }
-        let y = self.relinearised(graph);
+        let y = relinearised(&mut self.heads, graph, self.positions.edge_count());
         let [x, y] = self.positions.all_for(y);
         Ok((0..theta.len())
             .map(|v| Pose2::new(x[v], y[v], theta[v]))
@@ -172,4 +159,16 @@ impl Estimate {
         self.sync(graph);
         self.positions.variance(v)
     }
+}
+
+/// The first `edges` position rows at the current headings.
+fn relinearised(heads: &mut Laplacian<1>, graph: &PoseGraph, edges: usize) -> Vec<[f64; 2]> {
+    let theta = heads.all(0);
+    graph
+        .endpoints()
+        .iter()
+        .zip(graph.edges())
+        .take(edges)
+        .map(|(&(a, _), e)| rotate(theta[a], e.measurement()))
+        .collect()
 }

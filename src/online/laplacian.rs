@@ -29,14 +29,15 @@
 //! old places make R fill in, and the nodes appended since the last renewal form a chain that
 //! every loop closure to an older node walks. When R's nonzeros per row have grown by half, or
 //! an eighth of the nodes were appended, since the last renewal, a new factor is built
-//! **beside** the live one on another thread, in approximate minimum-degree order with the
-//! newest node last (the graph as it was at that step). It is collected a fixed number of
-//! steps later ([`DELAY_PER_ROW`] steps per nonzero of R, at least
-//! [`MIN_DELAY`]: a step count, so the run stays deterministic whatever the threads' timing;
-//! the step waits only if the builder is still busy then). The events since the snapshot are
-//! then replayed into it, at most [`REPLAY_PER_STEP`] per step, and once it has caught up, d is
-//! recomputed from the current measurements (one forward solve) and the new factor replaces
-//! the old.
+//! **beside** the live one on another thread: approximate minimum-degree order with the
+//! newest node last (the graph as it was at that step), the normal equations factored at once
+//! by a sparse Cholesky ([`SqrtInfo::factored`]; rows rotated in when extreme weights defeat
+//! it). Every later change (node, row, removed prior, moved right-hand side) is sent to the
+//! builder, which applies it to its factor as it comes, so the live factor's steps replay
+//! nothing. The new factor is collected a fixed number of steps after the start
+//! ([`DELAY_PER_ROW`] steps per nonzero of R, at least [`MIN_DELAY`]: a step count, so the run
+//! stays deterministic whatever the threads' timing; the step waits only if the builder is
+//! still busy then) and swapped in.
 //! Every answer in between comes from the live factor: exact at every step.
 
 use std::thread::JoinHandle;
@@ -48,7 +49,7 @@ use crate::graph::UnionFind;
 const FILL_RATIO: f64 = 1.5;
 /// Renew when more than `1/APPENDED_FRACTION` of the nodes were appended since the last
 /// renewal.
-const APPENDED_FRACTION: usize = 8;
+const APPENDED_FRACTION: usize = 32;
 /// Below this many variables the order is never renewed.
 const MIN_VARIABLES: usize = 256;
 /// Steps between starting a renewal and collecting it, at least.
@@ -56,21 +57,30 @@ pub(crate) const MIN_DELAY: u64 = 32;
 /// Steps between starting a renewal and collecting it, per nonzero of R (the builder's work
 /// grows with the factor).
 pub(crate) const DELAY_PER_ROW: f64 = 0.002;
-/// Events replayed into a renewed factor per step.
+/// Determinations replayed into a renewed factor of P_UU per step (`online.rs`).
 pub(crate) const REPLAY_PER_STEP: usize = 32;
 
-#[derive(Clone, Copy, Debug)]
-enum Event {
+/// A change to the system, sent to a renewal's builder so that it keeps its factor up to date
+/// itself (the live factor's step never replays anything).
+enum Msg<const K: usize> {
+    /// A new variable.
     Variable(u32),
-    Prior(u32),
-    Unprior(u32),
-    Row(u32),
+    /// A row added (`entries`, right-hand side).
+    Add([(usize, f64); 2], usize, [f64; K]),
+    /// A row removed (an anchor's prior).
+    Remove((usize, f64)),
+    /// A row's right-hand side moved by this much.
+    Shift([(usize, f64); 2], [f64; K]),
+    /// The renewal is collected: return the factor.
+    Done,
 }
 
 struct Renewal<const K: usize> {
     build: Beside<SqrtInfo<K>>,
-    events: Vec<Event>,
-    replayed: usize,
+    tx: std::sync::mpsc::Sender<Msg<K>>,
+    /// The right-hand sides the builder took for the edges of its snapshot, when the owner
+    /// gave new ones ([`Laplacian::after_step`]): they become the live ones at the swap.
+    y: Option<Vec<[f64; K]>>,
 }
 
 /// A factor built beside the live one on another thread and collected at a step fixed when it
@@ -79,7 +89,7 @@ struct Renewal<const K: usize> {
 pub(crate) struct Beside<T> {
     handle: Option<JoinHandle<Option<T>>>,
     fresh: Option<T>,
-    ready_at: u64,
+    pub(crate) ready_at: u64,
 }
 
 impl<T: Send + 'static> Beside<T> {
@@ -204,9 +214,13 @@ impl<const K: usize> Laplacian<K> {
         self.anchor.len()
     }
 
-    fn log(&mut self, e: Event) {
-        if let Some(r) = &mut self.renewal {
-            r.events.push(e);
+    /// Tell a renewal's builder (if any) about a change; a builder that is gone abandons the
+    /// renewal (the live factor goes on).
+    fn send(&mut self, msg: Msg<K>) {
+        if let Some(r) = &self.renewal
+            && r.tx.send(msg).is_err()
+        {
+            self.renewal = None;
         }
     }
 
@@ -217,7 +231,7 @@ impl<const K: usize> Laplacian<K> {
         self.prior.push(0.0);
         self.first_weight.push(0.0);
         self.factor.push_variable(v);
-        self.log(Event::Variable(v as u32));
+        self.send(Msg::Variable(v as u32));
         v
     }
 
@@ -238,12 +252,13 @@ impl<const K: usize> Laplacian<K> {
         if self.prior[winner] == 0.0 {
             self.first_weight[winner] = self.rows.sqrt_w[e];
             self.prior[winner] = self.rows.sqrt_w[e];
-            self.factor
-                .add_row(&[(winner, self.prior[winner])], [0.0; K]);
-            self.log(Event::Prior(winner as u32));
+            let prior = [(winner, self.prior[winner])];
+            self.factor.add_row(&prior, [0.0; K]);
+            self.send(Msg::Add([prior[0], (winner, 0.0)], 1, [0.0; K]));
         }
-        self.factor.add_row(&self.rows.entries(e), self.rows.rhs(e));
-        self.log(Event::Row(e as u32));
+        let (entries, rhs) = (self.rows.entries(e), self.rows.rhs(e));
+        self.factor.add_row(&entries, rhs);
+        self.send(Msg::Add(entries, 2, rhs));
         if ra != rb {
             self.components.union(a, b);
             let r = self.components.find(a);
@@ -251,7 +266,7 @@ impl<const K: usize> Laplacian<K> {
             let p = self.prior[loser];
             if p != 0.0 {
                 self.prior[loser] = 0.0;
-                self.log(Event::Unprior(loser as u32));
+                self.send(Msg::Remove((loser, p)));
                 if self.factor.remove_row(&[(loser, p)], [0.0; K]).is_err() {
                     // Numerically the prior was the only information left: rebuild now.
                     self.renewal = None;
@@ -270,7 +285,24 @@ impl<const K: usize> Laplacian<K> {
         self.rows.y[e] = y;
         let s = self.rows.sqrt_w[e];
         let shift: [f64; K] = std::array::from_fn(|q| s * (y[q] - old[q]));
-        self.factor.shift_rhs(&self.rows.entries(e), shift);
+        let entries = self.rows.entries(e);
+        self.factor.shift_rhs(&entries, shift);
+        // The builder may hold another right-hand side for this edge (a snapshot taken with
+        // new measurements): shift it from there.
+        let taken = self
+            .renewal
+            .as_mut()
+            .and_then(|r| r.y.as_mut())
+            .and_then(|ys| ys.get_mut(e));
+        let shift = match taken {
+            Some(t) => {
+                let shift = std::array::from_fn(|q| s * (y[q] - t[q]));
+                *t = y;
+                shift
+            }
+            None => shift,
+        };
+        self.send(Msg::Shift(entries, shift));
     }
 
     /// Every node's values (per right-hand side) for other measurements `y`, leaving the
@@ -283,13 +315,6 @@ impl<const K: usize> Laplacian<K> {
         self.rows.y = saved_y;
         self.factor.set_rhs(saved_d);
         out
-    }
-
-    /// Set every edge's measurement and recompute d at once (one forward solve): cheaper
-    /// than shifting when most right-hand sides move.
-    pub fn reset_y(&mut self, y: Vec<[f64; K]>) {
-        self.rows.y = y;
-        reset_rhs(&mut self.factor, &self.rows);
     }
 
     /// Value of node v: back-substitution along its elimination-tree path (O(1) for the
@@ -328,11 +353,13 @@ impl<const K: usize> Laplacian<K> {
         self.factor.marginal(&[(v, 1.0), (a, -1.0)])
     }
 
-    /// Called once per step, after its events: starts, advances or completes a renewal.
-    pub fn after_step(&mut self) {
+    /// Called once per step, after its events: starts or completes a renewal. A renewal's
+    /// snapshot takes the right-hand sides `relinearise` gives (None: the current ones); they
+    /// become the live ones when the renewal is swapped in.
+    pub fn after_step(&mut self, relinearise: impl FnOnce() -> Option<Vec<[f64; K]>>) {
         self.steps += 1;
         if self.renewal.is_some() {
-            self.advance_renewal();
+            self.complete_renewal();
             return;
         }
         let n = self.len();
@@ -345,61 +372,61 @@ impl<const K: usize> Laplacian<K> {
         let per_row = self.factor.nnz() as f64 / n as f64;
         let appended = n - self.nodes_at_renewal;
         if per_row <= FILL_RATIO * self.fill_after_renewal.max(1.0)
-            && appended <= MIN_VARIABLES.max(n / APPENDED_FRACTION)
+            && appended <= 64.max(n / APPENDED_FRACTION)
         {
             return;
         }
-        let rows = self.rows.clone();
+        let mut rows = self.rows.clone();
+        let y = relinearise().filter(|y| y.len() == rows.y.len());
+        if let Some(y) = &y {
+            rows.y.clone_from(y);
+        }
         let prior = self.prior.clone();
         let newest = n - 1;
         let delay = MIN_DELAY.max((self.factor.nnz() as f64 * DELAY_PER_ROW) as u64);
-        let job = move || Some(build(&rows, &prior, n, Some(newest)));
+        let (tx, rx) = std::sync::mpsc::channel::<Msg<K>>();
+        let job = move || {
+            let mut f = build(&rows, &prior, n, Some(newest));
+            drop(rows);
+            // Keep up with the live factor until collected.
+            for msg in rx {
+                match msg {
+                    Msg::Variable(v) => f.push_variable(v as usize),
+                    Msg::Add(entries, len, rhs) => f.add_row(&entries[..len], rhs),
+                    Msg::Remove(prior) => f.remove_row(&[prior], [0.0; K]).ok()?,
+                    Msg::Shift(entries, shift) => f.shift_rhs(&entries, shift),
+                    Msg::Done => return Some(f),
+                }
+            }
+            None
+        };
         let Some(build) = Beside::start("so2lin-renew", self.steps + delay, job) else {
             return;
         };
         self.nodes_at_renewal = n;
-        self.renewal = Some(Renewal {
-            build,
-            events: Vec::new(),
-            replayed: 0,
-        });
+        self.renewal = Some(Renewal { build, tx, y });
     }
 
-    fn advance_renewal(&mut self) {
+    /// At the renewal's step: collect the builder (which has applied every change since its
+    /// snapshot) and swap its factor in.
+    fn complete_renewal(&mut self) {
         let Some(r) = &mut self.renewal else { return };
+        if self.steps < r.build.ready_at {
+            return;
+        }
+        let sent = r.tx.send(Msg::Done).is_ok();
         let fresh = match r.build.poll(self.steps, &mut self.waits) {
-            Ok(Some(f)) => f,
-            Ok(None) => return,
-            Err(()) => {
-                self.renewal = None;
-                return;
-            }
+            Ok(Some(_)) if sent => self.renewal.take().and_then(|r| {
+                let y = r.y;
+                r.build.take().map(|f| (f, y))
+            }),
+            _ => None,
         };
-        let end = (r.replayed + REPLAY_PER_STEP).min(r.events.len());
-        for ev in &r.events[r.replayed..end] {
-            match *ev {
-                Event::Variable(v) => fresh.push_variable(v as usize),
-                Event::Prior(v) => {
-                    fresh.add_row(&[(v as usize, self.first_weight[v as usize])], [0.0; K])
-                }
-                Event::Row(e) => fresh.add_row(&self.rows.entries(e as usize), [0.0; K]),
-                Event::Unprior(v) => {
-                    let p = self.first_weight[v as usize];
-                    if fresh.remove_row(&[(v as usize, p)], [0.0; K]).is_err() {
-                        self.renewal = None;
-                        return;
-                    }
-                }
-            }
+        self.renewal = None;
+        let Some((fresh, y)) = fresh else { return };
+        if let Some(y) = y {
+            self.rows.y[..y.len()].copy_from_slice(&y);
         }
-        r.replayed = end;
-        if r.replayed < r.events.len() {
-            return;
-        }
-        let Some(mut fresh) = self.renewal.take().and_then(|r| r.build.take()) else {
-            return;
-        };
-        reset_rhs(&mut fresh, &self.rows);
         self.fill_after_renewal = fresh.nnz() as f64 / self.len().max(1) as f64;
         self.factor = fresh;
         self.renewals += 1;
@@ -425,17 +452,23 @@ fn build<const K: usize>(
         .collect();
     let last: Vec<usize> = last.into_iter().collect();
     let order = fill_reducing_order(n, &ends, &last);
+    let priors = prior
+        .iter()
+        .enumerate()
+        .take(n)
+        .filter(|&(_, &p)| p != 0.0)
+        .map(|(v, &p)| ([(v, p), (v, 0.0)], [0.0; K]));
+    let edges = (0..rows.ends.len()).map(|e| (rows.entries(e), rows.rhs(e)));
+    if let Some(f) = SqrtInfo::factored(&order, priors.clone().chain(edges.clone())) {
+        return f;
+    }
+    // Extreme weights: rotate the rows in (QR, better conditioned than the normal equations).
     let mut f = SqrtInfo::new();
     for v in order {
         f.push_variable(v);
     }
-    for (v, &p) in prior.iter().enumerate().take(n) {
-        if p != 0.0 {
-            f.add_row(&[(v, p)], [0.0; K]);
-        }
-    }
-    for e in 0..rows.ends.len() {
-        f.add_row(&rows.entries(e), rows.rhs(e));
+    for (entries, rhs) in priors.chain(edges) {
+        f.add_row(&entries, rhs);
     }
     f
 }
