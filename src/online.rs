@@ -235,6 +235,8 @@ pub struct OnlineEstimator {
     fill_after_reorder: f64,
     /// A renewal of L in progress.
     renewal: Option<CondRenewal>,
+    /// The thread that builds renewals of L and frees retired ones.
+    worker: laplacian::Worker,
     /// Steps that waited for a renewal of L.
     cond_waits: usize,
 }
@@ -285,6 +287,7 @@ impl OnlineEstimator {
             theta: Vec::new(),
             fill_after_reorder: f64::INFINITY,
             renewal: None,
+            worker: laplacian::Worker::default(),
             cond_waits: 0,
         })
     }
@@ -552,7 +555,9 @@ impl OnlineEstimator {
         let delay = laplacian::MIN_DELAY.max(rows as u64 / 64);
         let job = move || Conditioner::rebuilt(&model, &determined, 0).ok();
         let ready_at = self.counters.steps as u64 + delay;
-        if let Some(build) = laplacian::Beside::start("so2lin-reorder", ready_at, job) {
+        if let Some(build) =
+            laplacian::Beside::start(&mut self.worker, "so2lin-reorder", ready_at, job)
+        {
             self.renewal = Some(CondRenewal {
                 build,
                 replayed: rows,
@@ -591,7 +596,8 @@ impl OnlineEstimator {
         let Some(fresh) = self.renewal.take().and_then(|r| r.build.take()) else {
             return;
         };
-        self.screener.cond = fresh;
+        let old = std::mem::replace(&mut self.screener.cond, fresh);
+        self.worker.retire("so2lin-reorder", old);
         let rows = self.screener.cond.len().max(1);
         self.fill_after_reorder = self.screener.cond.factor_nnz() as f64 / rows as f64;
         self.counters.reorders += 1;

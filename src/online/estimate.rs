@@ -105,8 +105,20 @@ impl Estimate {
                     // A renewal of the position factor takes every position row at the
                     // current headings.
                     let (heads, edges) = (&mut self.heads, self.positions.edge_count());
-                    self.positions
-                        .after_step(|| Some(relinearised(heads, graph, edges)));
+                    self.positions.after_step(|| {
+                        // The headings here (one back-substitution); the rows on the builder.
+                        let theta = heads.all(0);
+                        let tails: Vec<(usize, Pose2)> = graph
+                            .endpoints()
+                            .iter()
+                            .zip(graph.edges())
+                            .take(edges)
+                            .map(|(&(a, _), e)| (a, e.measurement()))
+                            .collect();
+                        Some(Box::new(move || {
+                            tails.iter().map(|&(a, z)| rotate(theta[a], z)).collect()
+                        }))
+                    });
                 }
             }
         }

@@ -40,8 +40,6 @@
 //! still busy then) and swapped in.
 //! Every answer in between comes from the live factor: exact at every step.
 
-use std::thread::JoinHandle;
-
 use crate::estimate::incremental::{SqrtInfo, fill_reducing_order};
 use crate::graph::UnionFind;
 
@@ -49,7 +47,7 @@ use crate::graph::UnionFind;
 const FILL_RATIO: f64 = 1.5;
 /// Renew when more than `1/APPENDED_FRACTION` of the nodes were appended since the last
 /// renewal.
-const APPENDED_FRACTION: usize = 32;
+const APPENDED_FRACTION: usize = 8;
 /// Below this many variables the order is never renewed.
 const MIN_VARIABLES: usize = 256;
 /// Steps between starting a renewal and collecting it, at least.
@@ -60,70 +58,127 @@ pub(crate) const DELAY_PER_ROW: f64 = 0.002;
 /// Determinations replayed into a renewed factor of P_UU per step (`online.rs`).
 pub(crate) const REPLAY_PER_STEP: usize = 32;
 
-/// A change to the system, sent to a renewal's builder so that it keeps its factor up to date
-/// itself (the live factor's step never replays anything).
+/// A change to the system, sent to a renewal's builder so that it keeps its copy up to date
+/// itself (the live factor's steps replay nothing).
 enum Msg<const K: usize> {
     /// A new variable.
     Variable(u32),
-    /// A row added (`entries`, right-hand side).
-    Add([(usize, f64); 2], usize, [f64; K]),
-    /// A row removed (an anchor's prior).
-    Remove((usize, f64)),
-    /// A row's right-hand side moved by this much.
-    Shift([(usize, f64); 2], [f64; K]),
-    /// The renewal is collected: return the factor.
+    /// An anchor's prior row added.
+    Prior((usize, f64)),
+    /// An anchor's prior row removed.
+    Unprior((usize, f64)),
+    /// An edge: its ends, √w and y.
+    Edge(u32, u32, f64, [f64; K]),
+    /// Edge e's y is now this.
+    SetY(u32, [f64; K]),
+    /// The renewal is collected: return the factor and the rows' y.
     Done,
 }
 
+/// What a renewal's builder returns: its factor and the right-hand sides it holds.
+type Built<const K: usize> = (SqrtInfo<K>, Vec<[f64; K]>);
+
+/// A job that computes new right-hand sides for a renewal's snapshot, run by the builder.
+pub(crate) type Relinearise<const K: usize> = Box<dyn FnOnce() -> Vec<[f64; K]> + Send>;
+
 struct Renewal<const K: usize> {
-    build: Beside<SqrtInfo<K>>,
+    build: Beside<Built<K>>,
     tx: std::sync::mpsc::Sender<Msg<K>>,
-    /// The right-hand sides the builder took for the edges of its snapshot, when the owner
-    /// gave new ones ([`Laplacian::after_step`]): they become the live ones at the swap.
-    y: Option<Vec<[f64; K]>>,
 }
 
-/// A factor built beside the live one on another thread and collected at a step fixed when it
+/// A job for a [`Worker`].
+type Job = Box<dyn FnOnce() + Send>;
+
+/// A long-lived thread that runs jobs in the order given: builds of renewed factors, and the
+/// freeing of retired ones (a factor's thousands of rows cost a step about a millisecond to
+/// free). One thread for the estimator's life, so no step pays for starting a thread after the
+/// first renewal.
+#[derive(Default)]
+pub(crate) struct Worker {
+    tx: Option<std::sync::mpsc::Sender<Job>>,
+}
+
+impl Worker {
+    /// Run `job` on the worker thread (started on first use as `name`). False when no thread
+    /// can be started or it is gone: the caller goes on without.
+    pub fn run(&mut self, name: &str, job: Job) -> bool {
+        if self.tx.is_none() {
+            let (tx, rx) = std::sync::mpsc::channel::<Job>();
+            let spawned = std::thread::Builder::new()
+                .name(name.into())
+                .spawn(move || {
+                    for job in rx {
+                        job();
+                    }
+                })
+                .is_ok();
+            if !spawned {
+                return false;
+            }
+            self.tx = Some(tx);
+        }
+        match &self.tx {
+            Some(tx) if tx.send(job).is_ok() => true,
+            _ => {
+                self.tx = None;
+                false
+            }
+        }
+    }
+
+    /// Free `value` on the worker thread (here if there is none).
+    pub fn retire<T: Send + 'static>(&mut self, name: &str, value: T) {
+        self.run(name, Box::new(move || drop(value)));
+    }
+}
+
+/// A factor built beside the live one on a [`Worker`] and collected at a step fixed when it
 /// was started (shared by the estimate's factors and the factor of P_γ, so the run does not
 /// depend on the threads' timing).
 pub(crate) struct Beside<T> {
-    handle: Option<JoinHandle<Option<T>>>,
+    result: std::sync::mpsc::Receiver<Option<T>>,
     fresh: Option<T>,
     pub(crate) ready_at: u64,
 }
 
 impl<T: Send + 'static> Beside<T> {
-    /// Start `job` on a thread named `name`, to be collected at step `ready_at`. None when no
-    /// thread can be started: the live factor goes on, and the owner may try again later.
+    /// Start `job` on `worker`, to be collected at step `ready_at`. None when the worker
+    /// cannot take it: the live factor goes on, and the owner may try again later.
     pub fn start(
+        worker: &mut Worker,
         name: &str,
         ready_at: u64,
         job: impl FnOnce() -> Option<T> + Send + 'static,
     ) -> Option<Self> {
-        let handle = std::thread::Builder::new()
-            .name(name.into())
-            .spawn(job)
-            .ok()?;
-        Some(Self {
-            handle: Some(handle),
+        let (tx, result) = std::sync::mpsc::sync_channel(1);
+        let job: Job = Box::new(move || {
+            let _ = tx.send(job());
+        });
+        worker.run(name, job).then_some(Self {
+            result,
             fresh: None,
             ready_at,
         })
     }
 
-    /// At step `step`: the built factor once its step has come (joining the builder, and
+    /// At step `step`: the built factor once its step has come (waiting for the worker, and
     /// counting in `waits` a step that found it still busy), `Ok(None)` before, `Err(())` if
     /// the build failed.
     pub fn poll(&mut self, step: u64, waits: &mut usize) -> Result<Option<&mut T>, ()> {
+        use std::sync::mpsc::TryRecvError;
         if self.fresh.is_none() {
             if step < self.ready_at {
                 return Ok(None);
             }
-            let h = self.handle.take().ok_or(())?;
-            if !h.is_finished() {
-                *waits += 1;
-            }
-            self.fresh = Some(h.join().ok().flatten().ok_or(())?);
+            let got = match self.result.try_recv() {
+                Ok(got) => got,
+                Err(TryRecvError::Empty) => {
+                    *waits += 1;
+                    self.result.recv().map_err(|_| ())?
+                }
+                Err(TryRecvError::Disconnected) => return Err(()),
+            };
+            self.fresh = Some(got.ok_or(())?);
         }
         Ok(self.fresh.as_mut())
     }
@@ -182,6 +237,8 @@ pub(crate) struct Laplacian<const K: usize> {
     /// Nodes at the last renewal (its snapshot).
     nodes_at_renewal: usize,
     renewal: Option<Renewal<K>>,
+    /// The thread that builds renewals and frees retired factors.
+    worker: Worker,
     steps: u64,
     /// Renewals completed.
     pub renewals: usize,
@@ -201,6 +258,7 @@ impl<const K: usize> Default for Laplacian<K> {
             fill_after_renewal: 0.0,
             nodes_at_renewal: 0,
             renewal: None,
+            worker: Worker::default(),
             steps: 0,
             renewals: 0,
             waits: 0,
@@ -252,13 +310,12 @@ impl<const K: usize> Laplacian<K> {
         if self.prior[winner] == 0.0 {
             self.first_weight[winner] = self.rows.sqrt_w[e];
             self.prior[winner] = self.rows.sqrt_w[e];
-            let prior = [(winner, self.prior[winner])];
-            self.factor.add_row(&prior, [0.0; K]);
-            self.send(Msg::Add([prior[0], (winner, 0.0)], 1, [0.0; K]));
+            let prior = (winner, self.prior[winner]);
+            self.factor.add_row(&[prior], [0.0; K]);
+            self.send(Msg::Prior(prior));
         }
-        let (entries, rhs) = (self.rows.entries(e), self.rows.rhs(e));
-        self.factor.add_row(&entries, rhs);
-        self.send(Msg::Add(entries, 2, rhs));
+        self.factor.add_row(&self.rows.entries(e), self.rows.rhs(e));
+        self.send(Msg::Edge(a as u32, b as u32, self.rows.sqrt_w[e], y));
         if ra != rb {
             self.components.union(a, b);
             let r = self.components.find(a);
@@ -266,7 +323,7 @@ impl<const K: usize> Laplacian<K> {
             let p = self.prior[loser];
             if p != 0.0 {
                 self.prior[loser] = 0.0;
-                self.send(Msg::Remove((loser, p)));
+                self.send(Msg::Unprior((loser, p)));
                 if self.factor.remove_row(&[(loser, p)], [0.0; K]).is_err() {
                     // Numerically the prior was the only information left: rebuild now.
                     self.renewal = None;
@@ -285,24 +342,8 @@ impl<const K: usize> Laplacian<K> {
         self.rows.y[e] = y;
         let s = self.rows.sqrt_w[e];
         let shift: [f64; K] = std::array::from_fn(|q| s * (y[q] - old[q]));
-        let entries = self.rows.entries(e);
-        self.factor.shift_rhs(&entries, shift);
-        // The builder may hold another right-hand side for this edge (a snapshot taken with
-        // new measurements): shift it from there.
-        let taken = self
-            .renewal
-            .as_mut()
-            .and_then(|r| r.y.as_mut())
-            .and_then(|ys| ys.get_mut(e));
-        let shift = match taken {
-            Some(t) => {
-                let shift = std::array::from_fn(|q| s * (y[q] - t[q]));
-                *t = y;
-                shift
-            }
-            None => shift,
-        };
-        self.send(Msg::Shift(entries, shift));
+        self.factor.shift_rhs(&self.rows.entries(e), shift);
+        self.send(Msg::SetY(e as u32, y));
     }
 
     /// Every node's values (per right-hand side) for other measurements `y`, leaving the
@@ -354,9 +395,10 @@ impl<const K: usize> Laplacian<K> {
     }
 
     /// Called once per step, after its events: starts or completes a renewal. A renewal's
-    /// snapshot takes the right-hand sides `relinearise` gives (None: the current ones); they
-    /// become the live ones when the renewal is swapped in.
-    pub fn after_step(&mut self, relinearise: impl FnOnce() -> Option<Vec<[f64; K]>>) {
+    /// snapshot takes the right-hand sides computed by the job `relinearise` gives (None: the
+    /// current ones), run on the builder's thread; they become the live ones when the renewal
+    /// is swapped in.
+    pub fn after_step(&mut self, relinearise: impl FnOnce() -> Option<Relinearise<K>>) {
         self.steps += 1;
         if self.renewal.is_some() {
             self.complete_renewal();
@@ -372,63 +414,80 @@ impl<const K: usize> Laplacian<K> {
         let per_row = self.factor.nnz() as f64 / n as f64;
         let appended = n - self.nodes_at_renewal;
         if per_row <= FILL_RATIO * self.fill_after_renewal.max(1.0)
-            && appended <= 64.max(n / APPENDED_FRACTION)
+            && appended <= MIN_VARIABLES.max(n / APPENDED_FRACTION)
         {
             return;
         }
         let mut rows = self.rows.clone();
-        let y = relinearise().filter(|y| y.len() == rows.y.len());
-        if let Some(y) = &y {
-            rows.y.clone_from(y);
-        }
+        let relinearise = relinearise();
         let prior = self.prior.clone();
         let newest = n - 1;
         let delay = MIN_DELAY.max((self.factor.nnz() as f64 * DELAY_PER_ROW) as u64);
         let (tx, rx) = std::sync::mpsc::channel::<Msg<K>>();
         let job = move || {
+            if let Some(y) = relinearise.map(|job| job())
+                && y.len() == rows.y.len()
+            {
+                rows.y = y;
+            }
             let mut f = build(&rows, &prior, n, Some(newest));
-            drop(rows);
-            // Keep up with the live factor until collected.
+            // Keep up with the live system until collected.
             for msg in rx {
                 match msg {
                     Msg::Variable(v) => f.push_variable(v as usize),
-                    Msg::Add(entries, len, rhs) => f.add_row(&entries[..len], rhs),
-                    Msg::Remove(prior) => f.remove_row(&[prior], [0.0; K]).ok()?,
-                    Msg::Shift(entries, shift) => f.shift_rhs(&entries, shift),
-                    Msg::Done => return Some(f),
+                    Msg::Prior(p) => f.add_row(&[p], [0.0; K]),
+                    Msg::Unprior(p) => f.remove_row(&[p], [0.0; K]).ok()?,
+                    Msg::Edge(a, b, s, y) => {
+                        rows.ends.push((a, b));
+                        rows.sqrt_w.push(s);
+                        rows.y.push(y);
+                        let e = rows.ends.len() - 1;
+                        f.add_row(&rows.entries(e), rows.rhs(e));
+                    }
+                    Msg::SetY(e, y) => {
+                        let e = e as usize;
+                        let old = *rows.y.get(e)?;
+                        rows.y[e] = y;
+                        let s = rows.sqrt_w[e];
+                        f.shift_rhs(
+                            &rows.entries(e),
+                            std::array::from_fn(|q| s * (y[q] - old[q])),
+                        );
+                    }
+                    Msg::Done => return Some((f, rows.y)),
                 }
             }
             None
         };
-        let Some(build) = Beside::start("so2lin-renew", self.steps + delay, job) else {
+        let ready_at = self.steps + delay;
+        let Some(build) = Beside::start(&mut self.worker, "so2lin-renew", ready_at, job) else {
             return;
         };
         self.nodes_at_renewal = n;
-        self.renewal = Some(Renewal { build, tx, y });
+        self.renewal = Some(Renewal { build, tx });
     }
 
     /// At the renewal's step: collect the builder (which has applied every change since its
-    /// snapshot) and swap its factor in.
+    /// snapshot) and swap its factor in; the old one is freed on the worker.
     fn complete_renewal(&mut self) {
         let Some(r) = &mut self.renewal else { return };
         if self.steps < r.build.ready_at {
             return;
         }
         let sent = r.tx.send(Msg::Done).is_ok();
-        let fresh = match r.build.poll(self.steps, &mut self.waits) {
-            Ok(Some(_)) if sent => self.renewal.take().and_then(|r| {
-                let y = r.y;
-                r.build.take().map(|f| (f, y))
-            }),
+        let built = match r.build.poll(self.steps, &mut self.waits) {
+            Ok(Some(_)) if sent => self.renewal.take().and_then(|r| r.build.take()),
             _ => None,
         };
         self.renewal = None;
-        let Some((fresh, y)) = fresh else { return };
-        if let Some(y) = y {
-            self.rows.y[..y.len()].copy_from_slice(&y);
+        let Some((fresh, y)) = built else { return };
+        if y.len() != self.rows.y.len() {
+            return;
         }
+        self.rows.y = y;
         self.fill_after_renewal = fresh.nnz() as f64 / self.len().max(1) as f64;
-        self.factor = fresh;
+        let old = std::mem::replace(&mut self.factor, fresh);
+        self.worker.retire("so2lin-renew", old);
         self.renewals += 1;
     }
 }
