@@ -114,6 +114,27 @@ impl GammaModel {
         t
     }
 
+    /// Append cycle t from its μ_t and its row of P_γ as another model computed it
+    /// ([`push_cycle`](Self::push_cycle)): the entries for cycles ≤ t, ascending, its variance
+    /// last. Keeps a copy (a renewal's builder) in step with the live model; a copy grown this
+    /// way takes rows only. Entries for later cycles are ignored.
+    pub fn push_row(&mut self, mu: f64, row: &[(u32, f64)]) -> usize {
+        let t = self.mu.len();
+        self.mu.push(mu);
+        let row: Vec<(u32, f64)> = row
+            .iter()
+            .copied()
+            .filter(|&(c, _)| c as usize <= t)
+            .collect();
+        for &(c, v) in &row {
+            if (c as usize) < t {
+                self.rows[c as usize].push((t as u32, v));
+            }
+        }
+        self.rows.push(row);
+        t
+    }
+
     /// μ.
     pub fn mu(&self) -> &[f64] {
         &self.mu

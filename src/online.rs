@@ -34,8 +34,10 @@
 //! [`OnlineEstimator::orientations`] and [`OnlineEstimator::poses`] over the whole factor.
 //!
 //! **No stalls**: the factor of P_UU and the estimate's factors are renewed in a fill-reducing
-//! order on another thread, collected a fixed number of steps later and swapped in after a
-//! bounded catch-up (`online/laplacian.rs`); results do not depend on the threads' timing.
+//! order on a worker thread, which is sent every later change and applies it itself; the new
+//! factor is collected a fixed number of steps after the start and swapped in
+//! (`online/laplacian.rs`), so no step replays or rebuilds anything, and results do not depend
+//! on the threads' timing.
 
 use serde::Serialize;
 use smallvec::SmallVec;
@@ -244,8 +246,21 @@ pub struct OnlineEstimator {
 /// A renewal of the P_UU factor built beside the live one ([`OnlineEstimator::maybe_reorder`]).
 struct CondRenewal {
     build: laplacian::Beside<Conditioner>,
-    /// Determinations (positions in the live factor's order) replayed into the new factor.
-    replayed: usize,
+    tx: std::sync::mpsc::Sender<CondMsg>,
+    /// Cycles of the model sent to the builder.
+    cycles_sent: usize,
+    /// Determinations (positions in the live factor's order) sent to the builder.
+    determined_sent: usize,
+}
+
+/// What a renewal's builder of the P_UU factor is told as the live estimator goes on.
+enum CondMsg {
+    /// A new cycle: μ_t and its row of P_γ.
+    Cycle(f64, Vec<(u32, f64)>),
+    /// Cycle c determined with this value.
+    Determine(u32, i64),
+    /// Collected: return the factor.
+    Done,
 }
 
 impl std::fmt::Debug for OnlineEstimator {
@@ -529,8 +544,8 @@ impl OnlineEstimator {
     /// factor is built **beside** the live one on another thread, from a snapshot of the
     /// determined cycles, collected a fixed number of steps later (a step count, so the run
     /// is deterministic whatever the threads' timing; a step waits only if the builder is
-    /// still busy then), brought up to date with the determinations made since, a few per
-    /// step, and then swapped in: no step rebuilds the factor.
+    /// still busy then). The builder is sent every later cycle and determination and applies
+    /// them itself, so the swap costs nothing: no step rebuilds or replays the factor.
     fn maybe_reorder(&mut self) {
         if self.renewal.is_some() {
             return;
@@ -549,53 +564,73 @@ impl OnlineEstimator {
             return;
         }
         let determined = self.screener.cond.determined();
-        let model = self.model.clone();
+        let mut model = self.model.clone();
         // The rebuilt factor is small (fill-reducing order) while the live one keeps filling:
         // collect it soon (the builder's work grows with the rows, not with the live fill).
         let delay = laplacian::MIN_DELAY.max(rows as u64 / 64);
-        let job = move || Conditioner::rebuilt(&model, &determined, 0).ok();
+        let (tx, rx) = std::sync::mpsc::channel::<CondMsg>();
+        let job = move || {
+            let mut fresh = Conditioner::rebuilt(&model, &determined, 0).ok()?;
+            // Keep up with the live model and determinations until collected.
+            for msg in rx {
+                match msg {
+                    CondMsg::Cycle(mu, row) => {
+                        model.push_row(mu, &row);
+                    }
+                    CondMsg::Determine(c, v) => {
+                        fresh.determine(&model, c as usize, v).ok()?;
+                    }
+                    CondMsg::Done => return Some(fresh),
+                }
+            }
+            None
+        };
         let ready_at = self.counters.steps as u64 + delay;
         if let Some(build) =
             laplacian::Beside::start(&mut self.worker, "so2lin-reorder", ready_at, job)
         {
             self.renewal = Some(CondRenewal {
                 build,
-                replayed: rows,
+                tx,
+                cycles_sent: self.model.len(),
+                determined_sent: rows,
             });
         }
     }
 
-    /// Advance a renewal of the P_UU factor (see [`Self::maybe_reorder`]).
+    /// Advance a renewal of the P_UU factor (see [`Self::maybe_reorder`]): tell the builder
+    /// about this step's cycle and determinations, and at its step collect it and swap it in.
     fn advance_reorder(&mut self) {
         let Some(r) = &mut self.renewal else { return };
+        let live = &self.screener.cond;
+        let mut sent = true;
+        for t in r.cycles_sent..self.model.len() {
+            let msg = CondMsg::Cycle(self.model.mu()[t], self.model.row(t).to_vec());
+            sent &= r.tx.send(msg).is_ok();
+        }
+        r.cycles_sent = self.model.len();
+        for &c in &live.order()[r.determined_sent..] {
+            let v = live.value(c as usize).unwrap_or(0);
+            sent &= r.tx.send(CondMsg::Determine(c, v)).is_ok();
+        }
+        r.determined_sent = live.len();
+        if !sent {
+            self.renewal = None;
+            return;
+        }
+        if (self.counters.steps as u64) < r.build.ready_at {
+            return;
+        }
+        let done = r.tx.send(CondMsg::Done).is_ok();
         let fresh = match r
             .build
             .poll(self.counters.steps as u64, &mut self.cond_waits)
         {
-            Ok(Some(f)) => f,
-            Ok(None) => return,
-            Err(()) => {
-                self.renewal = None;
-                return;
-            }
+            Ok(Some(_)) if done => self.renewal.take().and_then(|r| r.build.take()),
+            _ => None,
         };
-        let live = &self.screener.cond;
-        let end = (r.replayed + laplacian::REPLAY_PER_STEP).min(live.len());
-        for &c in &live.order()[r.replayed..end] {
-            let c = c as usize;
-            let v = live.value(c).unwrap_or(0);
-            if fresh.determine(&self.model, c, v).is_err() {
-                self.renewal = None;
-                return;
-            }
-        }
-        r.replayed = end;
-        if r.replayed < live.len() {
-            return;
-        }
-        let Some(fresh) = self.renewal.take().and_then(|r| r.build.take()) else {
-            return;
-        };
+        self.renewal = None;
+        let Some(fresh) = fresh else { return };
         let old = std::mem::replace(&mut self.screener.cond, fresh);
         self.worker.retire("so2lin-reorder", old);
         let rows = self.screener.cond.len().max(1);

@@ -154,14 +154,48 @@ impl<const K: usize> SqrtInfo<K> {
                 let rho = rho2.sqrt();
                 (rho / r, wk / r, rho)
             } else {
-                let rho = r.hypot(wk);
+                // hypot only where the squares could overflow (it is several times slower).
+                let rho = if r.abs().max(wk.abs()) < 1e150 {
+                    (r * r + wk * wk).sqrt()
+                } else {
+                    r.hypot(wk)
+                };
                 (r / rho, wk / rho, rho)
             };
             self.diag[k] = rho;
+            next.clear();
+            if !downdate && is_subset(&w[head + 1..], &self.rows[k]) {
+                // No fill (the common case once the row has met its path): rotate row k in
+                // place, and the row goes on with row k's pattern.
+                let mut j = head + 1;
+                for e in self.rows[k].iter_mut() {
+                    let wj = match w.get(j) {
+                        Some(&(pj, v)) if pj == e.0 => {
+                            j += 1;
+                            v
+                        }
+                        _ => 0.0,
+                    };
+                    let rkj = e.1;
+                    e.1 = c * rkj + s * wj;
+                    let wn = c * wj - s * rkj;
+                    if wn != 0.0 {
+                        next.push((e.0, wn));
+                    }
+                }
+                let dk = &mut self.d[k];
+                for q in 0..K {
+                    let dn = c * dk[q] + s * beta[q];
+                    beta[q] = c * beta[q] - s * dk[q];
+                    dk[q] = dn;
+                }
+                std::mem::swap(&mut w, &mut next);
+                head = 0;
+                continue;
+            }
             let old = std::mem::take(&mut self.rows[k]);
             let mut row = std::mem::take(&mut self.spare_row);
             row.clear();
-            next.clear();
             let (mut i, mut j) = (0, head + 1);
             while i < old.len() || j < w.len() {
                 let (p, rkj, wj) = match (old.get(i), w.get(j)) {
@@ -467,6 +501,24 @@ impl<const K: usize> SqrtInfo<K> {
         f.reset_rhs(rows);
         Some(f)
     }
+}
+
+/// Whether every position of `a` is a position of `b` (both ascending).
+fn is_subset(a: &[(u32, f64)], b: &[(u32, f64)]) -> bool {
+    if a.len() > b.len() {
+        return false;
+    }
+    let mut j = 0;
+    for &(p, _) in a {
+        while j < b.len() && b[j].0 < p {
+            j += 1;
+        }
+        if j == b.len() || b[j].0 != p {
+            return false;
+        }
+        j += 1;
+    }
+    true
 }
 
 /// A fill-reducing order of the variables `0..n` of a graph with the given edges (approximate

@@ -55,8 +55,6 @@ pub(crate) const MIN_DELAY: u64 = 32;
 /// Steps between starting a renewal and collecting it, per nonzero of R (the builder's work
 /// grows with the factor).
 pub(crate) const DELAY_PER_ROW: f64 = 0.002;
-/// Determinations replayed into a renewed factor of P_UU per step (`online.rs`).
-pub(crate) const REPLAY_PER_STEP: usize = 32;
 
 /// A change to the system, sent to a renewal's builder so that it keeps its copy up to date
 /// itself (the live factor's steps replay nothing).
