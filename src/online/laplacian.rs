@@ -35,7 +35,8 @@
 //! it). Every later change (node, row, removed prior, moved right-hand side) is sent to the
 //! builder, which applies it to its factor as it comes, so the live factor's steps replay
 //! nothing. The new factor is collected a fixed number of steps after the start
-//! ([`DELAY_PER_ROW`] steps per nonzero of R, at least [`MIN_DELAY`]: a step count, so the run
+//! ([`DELAY_PER_ROW`] steps per nonzero the renewed factor is expected to have — the last
+//! renewal's fill per row times the variables — at least [`MIN_DELAY`]: a step count, so the run
 //! stays deterministic whatever the threads' timing; the step waits only if the builder is
 //! still busy then) and swapped in.
 //! Every answer in between comes from the live factor: exact at every step.
@@ -52,8 +53,8 @@ const APPENDED_FRACTION: usize = 8;
 const MIN_VARIABLES: usize = 256;
 /// Steps between starting a renewal and collecting it, at least.
 pub(crate) const MIN_DELAY: u64 = 32;
-/// Steps between starting a renewal and collecting it, per nonzero of R (the builder's work
-/// grows with the factor).
+/// Steps between starting a renewal and collecting it, per nonzero expected in the renewed
+/// factor (the builder's work grows with it).
 pub(crate) const DELAY_PER_ROW: f64 = 0.002;
 
 /// A change to the system, sent to a renewal's builder so that it keeps its copy up to date
@@ -420,7 +421,11 @@ impl<const K: usize> Laplacian<K> {
         let relinearise = relinearise();
         let prior = self.prior.clone();
         let newest = n - 1;
-        let delay = MIN_DELAY.max((self.factor.nnz() as f64 * DELAY_PER_ROW) as u64);
+        // The builder's work grows with the size of the factor it builds (about the last
+        // renewal's fill per row), not with the live factor's fill, which is what grows
+        // without bound between renewals.
+        let expected_nnz = self.fill_after_renewal.max(2.0) * n as f64;
+        let delay = MIN_DELAY.max((expected_nnz * DELAY_PER_ROW) as u64);
         let (tx, rx) = std::sync::mpsc::channel::<Msg<K>>();
         let job = move || {
             if let Some(y) = relinearise.map(|job| job())
