@@ -1,9 +1,12 @@
 """Independent client: read so2lin's sample MCAP logs with the official Python `mcap`
-package and validate every JSON message against the JSON Schema embedded in the file.
+package and validate every JSON message against the JSON Schema embedded in the file and,
+with `--official DIR`, every Foxglove message against the official schema in DIR/<Name>.json
+as well (from the npm package @foxglove/schemas, written by tests/foxglove_schemas.js).
 
 Run by .ci/run inside a virtual environment (`pip install mcap jsonschema`):
-    python tests/mcap_client.py logs/*.mcap
+    python tests/mcap_client.py [--official DIR] logs/*.mcap
 """
+import os
 import json
 import sys
 from collections import Counter
@@ -32,9 +35,10 @@ def stamp_ns(msg):
     return stamp["sec"] * 1_000_000_000 + stamp["nsec"]
 
 
-def check(path):
+def check(path, official=None):
     counts = Counter()
     validators = {}
+    official_validators = {}
     with open(path, "rb") as f:
         reader = make_reader(f)
         summary = reader.get_summary()
@@ -50,6 +54,12 @@ def check(path):
                 validators[schema.id] = jsonschema.Draft202012Validator(json.loads(schema.data))
             data = json.loads(message.data)
             validators[schema.id].validate(data)
+            if official and schema.name.startswith("foxglove."):
+                name = schema.name.removeprefix("foxglove.")
+                if name not in official_validators:
+                    with open(os.path.join(official, f"{name}.json")) as g:
+                        official_validators[name] = jsonschema.Draft202012Validator(json.load(g))
+                official_validators[name].validate(data)
             counts[channel.topic] += 1
             # One clock: log time, publish time and the Foxglove timestamp agree.
             assert message.log_time == message.publish_time, f"{path}: {channel.topic}"
@@ -65,11 +75,18 @@ def check(path):
     span = (stats.message_end_time - stats.message_start_time) / 1e9
     assert span >= 0.05 * (steps - 1), f"{path}: {steps} steps play back in {span:.2f} s"
     assert sum(counts.values()) == stats.message_count, f"{path}: statistics {stats.message_count}"
-    print(f"{path}: {dict(counts)} over {span:.1f} s — every message valid against its embedded schema")
+    against = "its embedded schema" + (" and the official Foxglove one" if official else "")
+    print(f"{path}: {dict(counts)} over {span:.1f} s — every message valid against {against}")
 
 
 if __name__ == "__main__":
-    if len(sys.argv) < 2:
-        sys.exit("usage: mcap_client.py LOG.mcap ...")
-    for p in sys.argv[1:]:
-        check(p)
+    args = sys.argv[1:]
+    official = None
+    if args[:1] == ["--official"]:
+        if len(args) < 2:
+            sys.exit("usage: mcap_client.py [--official DIR] LOG.mcap ...")
+        official, args = args[1], args[2:]
+    if not args:
+        sys.exit("usage: mcap_client.py [--official DIR] LOG.mcap ...")
+    for p in args:
+        check(p, official)
