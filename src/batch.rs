@@ -49,8 +49,10 @@ use crate::wraps::{WrapError, WrapSolver};
 
 pub use crate::screening::{InconsistentCycle, Iteration, SecondOutcome};
 
-/// What to run.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+/// What to run. Defaults: the incremental basis and [`ScreeningConfig::default`]
+/// (deserialised fields left out take these).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct BatchConfig {
     /// Cycle basis.
     pub basis: BasisKind,
@@ -366,7 +368,7 @@ fn robust_pass(
     for _ in 0..robust.rounds {
         let residual = |e: usize| {
             let (a, b) = ends[e];
-            crate::sim::wrap_angle(theta[b] - theta[a] - edges[e].delta())
+            crate::graph::wrap_angle(theta[b] - theta[a] - edges[e].delta())
         };
         let next = weights_of(&|e| residual(e).powi(2) / edges[e].sigma2(), phi_1);
         if settled(&next, &w) {

@@ -20,8 +20,19 @@ use std::collections::HashMap;
 
 use serde::{Deserialize, Serialize};
 
-/// Wrap an angle into (−π, π] (the one implementation, shared with the simulator).
-pub use crate::sim::wrap_angle;
+/// Wrap an angle into (−π, π] (the one implementation; the simulator re-exports it).
+///
+/// ```
+/// use so2lin::graph::wrap_angle;
+/// assert_eq!(wrap_angle(std::f64::consts::PI), std::f64::consts::PI);
+/// assert!((wrap_angle(-std::f64::consts::PI) - std::f64::consts::PI).abs() < 1e-15);
+/// assert!((wrap_angle(7.0) - (7.0 - std::f64::consts::TAU)).abs() < 1e-15);
+/// ```
+pub fn wrap_angle(a: f64) -> f64 {
+    use std::f64::consts::{PI, TAU};
+    let w = a - TAU * libm::floor((a + PI) / TAU);
+    if w <= -PI { w + TAU } else { w }
+}
 
 /// The largest |dθ| an edge may have, in radians: 2π·2²⁰ (about 6.6·10⁶ rad, a million turns).
 ///

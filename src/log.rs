@@ -19,9 +19,10 @@
 //! wall clock ([`Recorder::add_edge`]); `so2lin stream --log` and `demo` give step k the time
 //! start + k·0.1 s (`--step-time`), so a playback shows the map growing at ten steps a second.
 //! Messages carry their step index, which orders them on reading. A writer thread ([`Recorder`]) serialises and compresses off the estimator's
-//! thread; it closes and flushes a chunk after every loop closure and at least every
-//! [`LogOptions::flush_every`] steps, so a log cut at any byte (a robot losing power) still
-//! holds every step flushed before the cut: [`read_log`] reads linearly, stops at the first
+//! thread; it closes and flushes a chunk after every loop closure, at least every
+//! [`LogOptions::flush_every`] steps and [`LogOptions::flush_interval_ms`] after a step reached
+//! it, and never lets more than [`LogOptions::max_backlog`] steps wait for a flush, so a log
+//! cut at any byte (a robot losing power) holds every step flushed before the cut: [`read_log`] reads linearly, stops at the first
 //! damaged record and reports the log as cut.
 //!
 //! Replay ([`replay`]) rebuilds the estimator from the metadata, feeds the recorded edges and
@@ -40,8 +41,19 @@ use crate::screening::ScreeningConfig;
 /// Version of the so2lin channels' message layout.
 pub const SCHEMA_VERSION: &str = "1";
 
-/// Recording options. Defaults: a snapshot every 100 steps, a flush at least every 64
-/// steps, and after every loop closure.
+/// Recording options. Defaults ([`LogOptions::default`]): a snapshot every 100 steps; a flush
+/// (the open chunk closed and written to the sink) after every loop closure, at least every 64
+/// steps and at most 10 ms after a step reached the writer; at most 256 steps not yet flushed.
+///
+/// **What a crash can lose** (`kill -9`, a robot losing power after the OS wrote the file):
+/// at most [`max_backlog`](Self::max_backlog) steps, always — a step that would make more
+/// steps unflushed waits for the writer's next flush, and that wait is the only cost the log
+/// can put on a step (it ends at the writer's next flush: at most `flush_every` steps of
+/// serialising and one chunk's compression away, unless the writer thread gets no CPU). In
+/// time: a step is in the file about [`flush_interval_ms`](Self::flush_interval_ms) (plus the
+/// writer's 1 ms poll) after it was recorded when the writer keeps up, and within the time the
+/// writer takes for `max_backlog` steps when it does not. The README gives measured figures
+/// (`cargo bench --bench log_kill`).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default)]
 pub struct LogOptions {
@@ -53,6 +65,12 @@ pub struct LogOptions {
     /// Also flush after every loop closure (steps that queue up behind the writer share one
     /// flush). Default true.
     pub flush_on_loop_closure: bool,
+    /// Flush once the oldest step not yet flushed reached the writer this many milliseconds
+    /// ago (wall clock). Default 10.
+    pub flush_interval_ms: u64,
+    /// At most this many steps recorded and not yet flushed (at least 1): a step beyond waits
+    /// for the writer's next flush. Default 256.
+    pub max_backlog: usize,
 }
 
 impl Default for LogOptions {
@@ -61,6 +79,8 @@ impl Default for LogOptions {
             snapshot_every: 100,
             flush_every: 64,
             flush_on_loop_closure: true,
+            flush_interval_ms: 10,
+            max_backlog: 256,
         }
     }
 }
@@ -124,8 +144,8 @@ mod foxglove;
 mod queue;
 mod record;
 
-pub use record::Recorder;
 use record::step_json;
+pub use record::{Backpressure, Recorder};
 
 /// What [`read_log`] found.
 #[derive(Debug)]

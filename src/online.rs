@@ -52,14 +52,16 @@ use crate::cycles::{BasisKind, Cycle, CycleBasis, IncrementalBasis};
 use crate::estimate::EstimateError;
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
-use crate::gamma::{Conditioner, GammaModel, Moments};
+use crate::gamma::{Conditioner, GammaModel, Moments, SingularError};
 use crate::graph::{Edge, GraphError, Information, NodeId, NodePolicy, Pose2, PoseGraph};
 use crate::screening::{
     ConfigError, Hypothesis, Interval, Screener, ScreeningConfig, rounding_success,
 };
+use crate::wraps::WrapError;
 
-/// Settings of the online estimator.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+/// Settings of the online estimator (deserialised fields left out take their defaults).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct OnlineConfig {
     /// Screening settings (α, degrees of freedom, family-wise, hypothesis cap). Family-wise,
     /// cycle t is tested at [`ScreeningConfig::online_level`]`(t)` (α-spending).
@@ -183,15 +185,18 @@ pub enum OnlineError {
     /// Bad settings.
     #[error(transparent)]
     Config(#[from] ConfigError),
-    /// A numerical failure while screening or estimating.
-    #[error("numerical failure: {0}")]
-    Numerical(String),
-}
-
-impl From<EstimateError> for OnlineError {
-    fn from(e: EstimateError) -> Self {
-        OnlineError::Numerical(e.to_string())
-    }
+    /// [`OnlineEstimator::poses`]: the exact positions' linear system (the 2×2-block system
+    /// of anisotropic translation information) could not be factored or solved.
+    #[error("poses: {0}")]
+    Poses(#[from] EstimateError),
+    /// [`OnlineEstimator::finish`]: P_γ is numerically singular at the named cycle (the
+    /// second screening's conditioning).
+    #[error("finish: {0}")]
+    Singular(#[from] SingularError),
+    /// [`OnlineEstimator::finish`]: the wraps of the named cycle could not be computed from
+    /// the basis.
+    #[error("finish: {0}")]
+    Wraps(#[from] WrapError),
 }
 
 /// The online estimator.
@@ -566,8 +571,14 @@ impl OnlineEstimator {
         let determined = self.screener.cond.determined();
         let mut model = self.model.clone();
         // The rebuilt factor is small (fill-reducing order) while the live one keeps filling:
-        // collect it soon (the builder's work grows with the rows, not with the live fill).
-        let delay = laplacian::MIN_DELAY.max(rows as u64 / 64);
+        // collect it soon (the builder's work grows with the rows, not with the live fill) —
+        // but not before the builder can be done: rebuilding costs about rows · f² for a
+        // fresh fill of f ≤ per_row per row, a step's solve up to rows · per_row, so the
+        // builder needs up to per_row steps' worth of work. That bound matters only when P_γ
+        // is dense (complete graphs: per_row ≈ rows/2); elsewhere rows/64 is the larger.
+        let delay = laplacian::MIN_DELAY
+            .max(rows as u64 / 64)
+            .max(per_row.ceil() as u64);
         let (tx, rx) = std::sync::mpsc::channel::<CondMsg>();
         let job = move || {
             let mut fresh = Conditioner::rebuilt(&model, &determined, 0).ok()?;
@@ -787,11 +798,8 @@ impl OnlineEstimator {
             &self.config.screening,
             &|t| self.config.screening.online_quantile(t),
             &basis,
-        )
-        .map_err(|e| OnlineError::Numerical(e.to_string()))?;
-        let solver = basis
-            .wrap_solver(self.graph.edge_count())
-            .map_err(|e| OnlineError::Numerical(e.to_string()))?;
+        )?;
+        let solver = basis.wrap_solver(self.graph.edge_count())?;
         Ok(BatchResult {
             edges: self.graph.edge_count(),
             basis,

@@ -25,11 +25,15 @@
 //! is the Jacobian above plus the shared sparse Cholesky.
 
 use crate::estimate::{Anchored, EstimateError, NormalEquations, solve};
+use crate::graph::wrap_angle;
 use crate::graph::{Pose2, PoseGraph};
-use crate::sim::wrap_angle;
 
-/// When to stop (module docs). The defaults are those of [`RefineConfig::default`].
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+/// When to stop (module docs). Defaults ([`RefineConfig::default`]): at most 100 iterations,
+/// converged when a step lowers the cost by less than 1e-10 of it, when `‖g‖∞ ≤ 1e-8`, or when a
+/// step is below 1e-12 relative to the poses; initial damping 1e-6. Deserialised fields left
+/// out take these defaults.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct RefineConfig {
     /// At most this many linear solves (taken and refused steps). Default 100.
     pub iterations: usize,

@@ -39,8 +39,9 @@ use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
 use crate::graph::{Edge, GraphError, NodeId, NodePolicy, Pose2, PoseGraph};
 
-/// Simulator parameters.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+/// Simulator parameters ([`SimConfig::new`] gives the defaults for a size and seed; a
+/// deserialised one names every field).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, serde::Deserialize)]
 pub struct SimConfig {
     /// Number of poses (nodes).
     pub poses: usize,
@@ -116,11 +117,8 @@ pub enum SimError {
     Graph(#[from] GraphError),
 }
 
-/// Wrap an angle into (−π, π].
-pub fn wrap_angle(a: f64) -> f64 {
-    let w = a - TAU * libm::floor((a + PI) / TAU);
-    if w <= -PI { w + TAU } else { w }
-}
+/// Wrap an angle into (−π, π] ([`crate::graph::wrap_angle`], re-exported).
+pub use crate::graph::wrap_angle;
 
 struct Noise(ChaCha8Rng);
 

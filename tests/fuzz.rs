@@ -83,6 +83,7 @@ fn recorded_log(poses: usize, seed: u64) -> Vec<u8> {
         snapshot_every: 40,
         flush_every: 16,
         flush_on_loop_closure: true,
+        ..LogOptions::default()
     };
     let mut rec = Recorder::new(Box::new(sink.clone()), &config, "fuzz", options).unwrap();
     for (k, e) in world.graph.edges().iter().enumerate() {

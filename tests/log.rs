@@ -82,6 +82,7 @@ fn a_log_cut_anywhere_replays_every_flushed_step() {
             snapshot_every: 100,
             flush_every: 16,
             flush_on_loop_closure,
+            ..LogOptions::default()
         });
     }
 }
@@ -340,4 +341,78 @@ fn extreme_information_never_costs_a_step() {
     let replay = so2lin::log::replay(&log, true).unwrap();
     assert!(replay.divergence.is_none());
     assert_eq!(replay.steps, edges.len());
+}
+
+/// The crash bound: after every recorded step, the bytes already in the sink (what a
+/// `kill -9` would leave) hold all but at most `max_backlog` of the steps — whatever the
+/// writer's speed, because a step beyond waits for the writer's flush. Here only that bound
+/// makes the writer flush (no loop-closure flushes, `flush_every` and the interval out of
+/// reach), so the old writer, which flushed every `flush_every` steps, fails at step 9.
+#[test]
+fn a_crash_loses_at_most_max_backlog_steps() {
+    const MAX: usize = 8;
+    let w = simulate(&SimConfig::new(300, 13)).unwrap();
+    let edges = w.graph.edges();
+    let options = LogOptions {
+        snapshot_every: 50,
+        flush_every: 10_000,
+        flush_on_loop_closure: false,
+        flush_interval_ms: 1_000_000,
+        max_backlog: MAX,
+    };
+    let sink = Shared::default();
+    let config = OnlineConfig::default();
+    let mut est = OnlineEstimator::new(config).unwrap();
+    let mut rec = Recorder::new(Box::new(sink.clone()), &config, "t", options).unwrap();
+    for (k, e) in edges.iter().enumerate() {
+        rec.add_edge(&mut est, *e).unwrap();
+        let log = read_log(&sink.bytes()).unwrap();
+        assert!(
+            (k + 1).saturating_sub(log.steps.len()) <= MAX,
+            "after step {k}: {} steps in the file",
+            log.steps.len()
+        );
+        let r = replay(&log, true).unwrap();
+        assert!(r.divergence.is_none());
+    }
+    // Only the bound flushed, so steps did wait for it.
+    let b = rec.backpressure();
+    assert!(b.steps_waited >= (edges.len() / MAX - 1) as u64, "{b:?}");
+    assert_eq!(rec.finish(&mut est).unwrap(), edges.len() as u64);
+}
+
+/// The time bound: a step no other rule would flush (no loop closure, far fewer than
+/// `flush_every` steps, no `sync`) reaches the sink once it is `flush_interval_ms` old. The
+/// test waits for that condition (failing only if it never comes within a minute); the old
+/// writer never flushed these steps before `finish`.
+#[test]
+fn an_idle_writer_flushes_within_the_interval() {
+    let options = LogOptions {
+        flush_every: 10_000,
+        max_backlog: 10_000,
+        flush_interval_ms: 5,
+        ..LogOptions::default()
+    };
+    let sink = Shared::default();
+    let config = OnlineConfig::default();
+    let mut est = OnlineEstimator::new(config).unwrap();
+    let mut rec = Recorder::new(Box::new(sink.clone()), &config, "t", options).unwrap();
+    let info = so2lin::graph::Information::diagonal(100.0, 100.0, 1000.0);
+    for k in 0..3u64 {
+        let e = Edge::new(k, k + 1, so2lin::graph::Pose2::new(1.0, 0.0, 0.1), info).unwrap();
+        assert!(matches!(
+            rec.add_edge(&mut est, e).unwrap().kind,
+            StepKind::Tree { .. }
+        ));
+    }
+    let start = std::time::Instant::now();
+    let steps = loop {
+        let n = read_log(&sink.bytes()).unwrap().steps.len();
+        if n == 3 || start.elapsed().as_secs() >= 60 {
+            break n;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    };
+    assert_eq!(steps, 3, "the steps never reached the sink");
+    rec.finish(&mut est).unwrap();
 }

@@ -3,14 +3,17 @@
 //! step and a queue push, not for JSON, compression or I/O (the design of a bag recorder).
 //!
 //! **Flush policy** (crash safety). The writer takes what is queued every millisecond (at once
-//! on [`Recorder::sync`] and `finish`), writes it, and closes the open chunk — compressed,
-//! written to the sink, the sink flushed — when the batch held a loop closure (unless
-//! [`LogOptions::flush_on_loop_closure`] is off), after at most [`LogOptions::flush_every`]
-//! steps, on `sync` and at the end. Loop closures of one batch share one flush (group commit):
-//! a loop closure reaches the file within about a millisecond plus the writer's backlog, and a
-//! writer that falls behind catches up instead of compressing a tiny chunk per step. A log cut
-//! at any byte holds every step whose chunk was closed before the cut; `sync` waits until
-//! everything recorded so far is.
+//! on [`Recorder::sync`], `finish` and a full backlog), writes it, and closes the open chunk —
+//! compressed, written to the sink, the sink flushed — when the batch held a loop closure
+//! (unless [`LogOptions::flush_on_loop_closure`] is off), after at most
+//! [`LogOptions::flush_every`] steps, once the oldest unflushed step reached the writer
+//! [`LogOptions::flush_interval_ms`] ago, when the estimator waits for it, on `sync` and at the
+//! end. Loop closures of one batch share one flush (group commit), so a writer that falls
+//! behind catches up instead of compressing a tiny chunk per step. **The backlog is bounded**:
+//! at most [`LogOptions::max_backlog`] steps are recorded and not yet flushed; a step beyond
+//! waits for the next flush ([`Recorder::backpressure`] counts those waits). A log cut at any
+//! byte holds every step whose chunk was closed before the cut, so a crash loses at most
+//! `max_backlog` steps; `sync` waits until everything recorded so far is flushed.
 //!
 //! **Recording observes steps**: the estimator knows nothing of MCAP. [`Recorder::add_edge`]
 //! (or [`Recorder::add_edge_at`] with the caller's timestamp) adds the edge to the estimator,
@@ -24,6 +27,10 @@
 //! back-substitution, no factorisation); the writer serialises them. A snapshot that cannot be
 //! computed is reported on `/so2lin/log` and never costs a step.
 //!
+//! Chunks are written whole (assembled in memory, never a placeholder header patched later),
+//! so a file cut at any byte — a crash in the middle of a write included — reads as complete
+//! chunks and a cut.
+//!
 //! The messages and their order do not depend on the writer's timing; only the chunk
 //! boundaries can, so replays are identical while the files' bytes may differ (the recorded
 //! latencies differ anyway).
@@ -33,6 +40,7 @@ use std::path::Path;
 use std::sync::mpsc::{SyncSender, sync_channel};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
@@ -53,6 +61,19 @@ pub struct Recorder {
     failure: Arc<Mutex<Option<String>>>,
     options: LogOptions,
     steps: u64,
+    backpressure: Backpressure,
+}
+
+/// How often recording made a step wait for the writer (the bounded backlog,
+/// [`LogOptions::max_backlog`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct Backpressure {
+    /// Steps whose recording waited for the writer's flush.
+    pub steps_waited: u64,
+    /// The longest such wait, ns.
+    pub longest_wait_ns: u64,
+    /// All waits together, ns.
+    pub total_wait_ns: u64,
 }
 
 /// What the recorder hands to the writer thread.
@@ -63,6 +84,8 @@ enum Record {
         latency_ns: u64,
         time_ns: u64,
         newest: Option<Pose2>,
+        /// When the step was handed over (the flush interval counts from here).
+        handed: Instant,
     },
     Snapshot(Snapshot),
     /// A snapshot that could not be computed: said on `/so2lin/log`.
@@ -171,6 +194,11 @@ impl Recorder {
             // Chunks are small (one per loop closure): compress on the writer thread itself,
             // without a worker-pool handoff per chunk.
             .compression_threads(0)
+            // Each chunk is assembled in memory and written whole when it is closed. (With
+            // seeking, mcap writes a placeholder chunk header first, streams the data after
+            // it and patches the header at the end: a crash in between leaves a header that
+            // claims an impossible length, which reads as corruption, not as a cut.)
+            .disable_seeking(true)
             .compression_level(1)
             .profile("")
             .library(format!("so2lin {}", env!("CARGO_PKG_VERSION")));
@@ -215,11 +243,12 @@ impl Recorder {
             options,
             steps: 0,
             since_flush: 0,
+            oldest: None,
             time_ns: 0,
             pending: false,
             buf: Vec::with_capacity(1024),
         };
-        let queue = Arc::new(Queue::new());
+        let queue = Arc::new(Queue::new(options.max_backlog));
         let failure = Arc::new(Mutex::new(None));
         let (fail, q) = (Arc::clone(&failure), Arc::clone(&queue));
         let worker = std::thread::Builder::new()
@@ -245,14 +274,32 @@ impl Recorder {
             failure,
             options,
             steps: 0,
+            backpressure: Backpressure::default(),
         })
     }
 
     fn send(&mut self, record: Record, urgent: bool) {
-        // A writer that is gone stopped on an error, kept in `failure`.
-        if self.live && !self.queue.push(record, urgent) {
-            self.live = false;
+        let step = matches!(record, Record::Step { .. });
+        if !self.live {
+            return;
         }
+        match self.queue.push(record, urgent, step) {
+            // A writer that is gone stopped on an error, kept in `failure`.
+            None => self.live = false,
+            Some(None) => {}
+            Some(Some(wait)) => {
+                let ns = u64::try_from(wait.as_nanos()).unwrap_or(u64::MAX);
+                let b = &mut self.backpressure;
+                b.steps_waited += 1;
+                b.longest_wait_ns = b.longest_wait_ns.max(ns);
+                b.total_wait_ns = b.total_wait_ns.saturating_add(ns);
+            }
+        }
+    }
+
+    /// How often recording made a step wait for the writer so far.
+    pub fn backpressure(&self) -> Backpressure {
+        self.backpressure
     }
 
     /// Add an edge to the estimator and record the step, at the wall-clock time (ns since the
@@ -301,6 +348,7 @@ impl Recorder {
             latency_ns,
             time_ns,
             newest,
+            handed: Instant::now(),
         };
         self.send(record, false);
         self.steps += 1;
@@ -394,7 +442,10 @@ struct Writer {
     channels: [u16; 7],
     options: LogOptions,
     steps: u64,
+    /// Steps written since the last flush.
     since_flush: usize,
+    /// When the oldest of them was handed over.
+    oldest: Option<Instant>,
     /// Time of the current step (ns since the Unix epoch).
     time_ns: u64,
     /// A loop closure is waiting for its flush.
@@ -408,8 +459,10 @@ impl Writer {
     /// the loop closures in it (group commit).
     fn run(mut self, queue: &Queue<Record>) -> Result<u64, LogError> {
         let mut batch = Vec::new();
+        let interval = Duration::from_millis(self.options.flush_interval_ms);
         loop {
-            let closed = queue.take(&mut batch);
+            let deadline = self.oldest.map(|t| t + interval);
+            let closed = queue.take(&mut batch, deadline);
             for record in batch.drain(..) {
                 match record {
                     Record::Step {
@@ -418,11 +471,20 @@ impl Writer {
                         latency_ns,
                         time_ns,
                         newest,
-                    } => self.step(&edge, &step, latency_ns, time_ns, newest)?,
+                        handed,
+                    } => {
+                        self.oldest.get_or_insert(handed);
+                        self.step(&edge, &step, latency_ns, time_ns, newest)?;
+                        // The interval is checked once per batch (below): a writer that is
+                        // behind writes whole chunks, not one per step.
+                        if self.since_flush >= self.options.flush_every.max(1) {
+                            self.flush(queue)?;
+                        }
+                    }
                     Record::Snapshot(s) => self.snapshot(s)?,
                     Record::Failed(e) => self.log_line(4, &format!("snapshot not written: {e}"))?,
                     Record::Sync(reply) => {
-                        self.flush()?;
+                        self.flush(queue)?;
                         // The caller may have stopped waiting; nothing to do then.
                         let _ = reply.send(());
                     }
@@ -435,8 +497,9 @@ impl Writer {
                     }
                 }
             }
-            if self.pending {
-                self.flush()?;
+            let overdue = self.oldest.is_some_and(|t| t.elapsed() >= interval);
+            if self.pending || overdue || (self.since_flush > 0 && queue.producer_waiting()) {
+                self.flush(queue)?;
             }
             if closed {
                 self.mcap.finish()?;
@@ -445,9 +508,13 @@ impl Writer {
         }
     }
 
-    fn flush(&mut self) -> Result<(), LogError> {
+    /// Close the open chunk and flush the sink: the steps written since the last flush are
+    /// durable.
+    fn flush(&mut self, queue: &Queue<Record>) -> Result<(), LogError> {
         self.mcap.flush()?;
+        queue.durable(self.since_flush);
         self.since_flush = 0;
+        self.oldest = None;
         self.pending = false;
         Ok(())
     }
@@ -543,9 +610,6 @@ impl Writer {
         self.since_flush += 1;
         if self.options.flush_on_loop_closure && matches!(step.kind, StepKind::Cycle(_)) {
             self.pending = true;
-        }
-        if self.since_flush >= self.options.flush_every.max(1) {
-            self.flush()?;
         }
         Ok(())
     }

@@ -905,7 +905,7 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
             .poses
             .iter()
             .zip(&e.theta)
-            .map(|(p, t)| sim::wrap_angle(t - p.theta).abs())
+            .map(|(p, t)| so2lin::graph::wrap_angle(t - p.theta).abs())
             .collect();
         let rms = (err.iter().map(|x| x * x).sum::<f64>() / err.len() as f64).sqrt();
         let max = err.iter().copied().fold(0.0, f64::max);
@@ -983,7 +983,7 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
         for (p, t) in s.refined.poses.iter().zip(&world.truth.poses) {
             let rel = p0.between(*t);
             dp += (p.x - rel.x).powi(2) + (p.y - rel.y).powi(2);
-            dt += sim::wrap_angle(p.theta - rel.theta).powi(2);
+            dt += so2lin::graph::wrap_angle(p.theta - rel.theta).powi(2);
         }
         println!(
             "  pose error            RMS position {:.3}, RMS heading {:.4} rad against the truth",

@@ -146,10 +146,17 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     }
     bar.finish_and_clear();
     std::hint::black_box(sink);
+    let backpressure = recorder.as_ref().map(Recorder::backpressure);
     if let Some(rec) = recorder {
         rec.finish(&mut est).map_err(|e| e.to_string())?;
-        if let Some(path) = args.log {
-            eprintln!("log written to {}", path.display());
+        if let (Some(path), Some(b)) = (args.log, backpressure) {
+            eprintln!(
+                "log written to {} ({} waited for the log writer's flush, longest {:.2} ms; at most {} steps were unflushed at any time)",
+                path.display(),
+                crate::plural(b.steps_waited as usize, "step", "steps"),
+                b.longest_wait_ns as f64 / 1e6,
+                args.log_options.max_backlog.max(1),
+            );
         }
     }
     let stream_s = start.elapsed().as_secs_f64();
@@ -197,6 +204,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "finish_seconds": finish_s,
             "total_seconds": total,
             "peak_rss_bytes": rss,
+            "log_backpressure": backpressure,
             "outcome": result.outcome,
             "hypotheses": result.hypotheses.iter().map(|h| json!({"chi2": h.chi2, "p_value": h.p_value})).collect::<Vec<_>>(),
             "success_probability_lower_bound": result.success_lower_bound,
