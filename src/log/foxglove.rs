@@ -167,21 +167,24 @@ pub(super) enum Style {
     LoopClosure = 1,
     /// Chord of an ambiguous or inconsistent cycle (red, thick).
     Flagged = 2,
+    /// Quarantined loop closure (orange, thin, half transparent): not in the estimate.
+    Rejected = 3,
 }
 
 impl<'a> SceneUpdate<'a> {
     /// The graph in frame `map`: `segments[s]` holds the endpoint pairs drawn in style `s`.
     pub(super) fn graph(
         time_ns: u64,
-        segments: &'a [Vec<(usize, usize)>; 3],
+        segments: &'a [Vec<(usize, usize)>; 4],
         pos: &'a [(f64, f64)],
     ) -> Self {
-        const COLORS: [(f64, f64, f64, f64); 3] = [
+        const COLORS: [(f64, f64, f64, f64); 4] = [
             (0.6, 0.6, 0.6, 1.0),
             (0.2, 0.4, 1.0, 0.8),
             (1.0, 0.1, 0.1, 1.0),
+            (1.0, 0.6, 0.0, 0.5),
         ];
-        const THICKNESS: [f64; 3] = [0.05, 0.03, 0.12];
+        const THICKNESS: [f64; 4] = [0.05, 0.03, 0.12, 0.02];
         let lines = segments
             .iter()
             .enumerate()
