@@ -9,25 +9,38 @@
 //! r = Σ_i R(φ_{i−1}) t'_i,     φ_i = Σ_{k ≤ i} δ'_k,     (t'_i, δ'_i) = Z_i or Z_i⁻¹,
 //! ```
 //!
-//! needs no wrap: it is a function of the measurements alone. Its covariance is propagated to
-//! first order from each edge's covariance `Σ_e = Ω_e⁻¹` (g2o's convention: the noise is a
-//! right perturbation `Z_e ⊕ ε_e`). A perturbation `η` inserted where the running pose is
-//! `P = (p, φ)` (after `Z_e` along the edge, before `Z_e⁻¹` against it) moves the closure by
+//! needs no wrap: it is a function of the measurements alone. Its covariance is propagated
+//! from each edge's covariance `Σ_e = Ω_e⁻¹` (g2o's convention: the noise is a right
+//! perturbation `Z_e ⊕ ε_e`; the translation–angle cross terms of Σ_e are left out) **exactly in
+//! the angles**, not by linearisation: writing 2D vectors as complex numbers, the closure is a
+//! sum of pieces `r = Σ_k e^{i(φ_k + A_k)} v_k`, where `A_k` is the Gaussian sum of the angle
+//! noises met before piece k (variance `V_k`) and `v_k` a translation (mean `v̄_k`, noise `w_k`).
+//! With `c_k = e^{iφ_k} v̄_k` and `E[e^{iA}] = e^{−Var(A)/2}`:
 //!
 //! ```text
-//! δr = R(φ) η_t + J (r − p) η_θ,     J = [[0, −1], [1, 0]],
+//! m = Σ_k c_k e^{−V_k/2},
+//! S = E[r r̄] = Σ_{k,l} c_k c̄_l e^{−|V_k − V_l|/2} + Σ_k E|w_k|²,
+//! T = E[r r]  = Σ_{k,l} c_k c_l e^{−(V_k + V_l + 2 min(V_k, V_l))/2} + Σ_k e^{2iφ_k} e^{−2V_k} E[w_k²],
+//! Cov(r) = ½ [[Re(C + P), Im P], [Im P, Re(C − P)]],   C = S − |m|²,  P = T − m²,
 //! ```
 //!
-//! so `Cov(r) = Σ_e G_e Σ_e G_eᵀ` with `G_e = [R(φ) | J(r − p)]` (edges independent), and
+//! with the measured values standing in for the true ones. For small angle noise this is the
+//! first-order propagation `Σ_e G_e Σ_e G_eᵀ`, `G_e = [R(φ) | J (r − p)]`; it stays right when the
+//! heading uncertainty accumulated around a long cycle is large (a linearised covariance then
+//! raises false alarms: measured on simulated worlds with σ_θ = 0.15–0.3 rad). The test is
 //!
 //! ```text
-//! χ²_t = rᵀ Cov(r)⁻¹ r  ~  χ²_2,     P(χ²_2 > x) = e^{−x/2},  threshold −2 ln(level).
+//! χ²_t = rᵀ Cov(r)⁻¹ r  ≈  χ²_2,     P(χ²_2 > x) = e^{−x/2},   threshold −4 ln(level),
 //! ```
 //!
-//! The angle noise enters through the lever arms `r − p`, so the test is valid on its own (it
-//! is the marginal of the translation, not conditioned on the angle test). Linearisation is the
-//! only approximation: at the benchmark files' noise (σ_θ ≤ 0.1 rad, loops of a few edges) it is
-//! far below the statistic's spread.
+//! the marginal of the translation (not conditioned on the angle test). The threshold is the
+//! χ²_2 quantile at level² rather than at level: the closure mixes products of angle and
+//! translation noise, whose tails are heavier than a Gaussian's, and the family-wise levels are
+//! deep in the tail (10⁻⁵–10⁻⁸). Measured on clean simulated worlds (60 each, 200–1500 poses,
+//! every cycle's closure at the online levels): with `−2 ln(level)`, 6, 10, 15 and 19 false
+//! alarms at σ_θ = 0.1, 0.15, 0.2, 0.3 rad; with `−4 ln(level)`, 0, 0, 0 and 1. So the
+//! α-spending of the translation family is an empirical statement here, not a theorem. Cost
+//! O(n²) for a cycle of n edges.
 
 use crate::cycles::SignedEdge;
 use crate::graph::{Edge, Pose2};
@@ -43,9 +56,10 @@ pub struct Closure {
     pub chi2: f64,
 }
 
-/// `χ²_2⁻¹(1 − level) = −2 ln(level)`: the threshold of the translation test at `level`.
+/// The threshold of the translation test at `level`: `−4 ln(level) = χ²_2⁻¹(1 − level²)`
+/// (module docs: the margin for the closure's heavier-than-Gaussian tails).
 pub fn threshold(level: f64) -> f64 {
-    -2.0 * level.ln()
+    -4.0 * level.ln()
 }
 
 /// `P(χ²_2 > x) = e^{−x/2}`.
@@ -74,46 +88,110 @@ fn covariance(e: &Edge) -> Option<[[f64; 3]; 3]> {
     Some(s)
 }
 
+/// A complex number `(re, im)`: a 2D vector.
+#[derive(Clone, Copy, Debug, Default)]
+struct C2(f64, f64);
+
+impl C2 {
+    fn mul(self, o: C2) -> C2 {
+        C2(self.0 * o.0 - self.1 * o.1, self.0 * o.1 + self.1 * o.0)
+    }
+    fn conj(self) -> C2 {
+        C2(self.0, -self.1)
+    }
+    fn scale(self, s: f64) -> C2 {
+        C2(self.0 * s, self.1 * s)
+    }
+    fn add(self, o: C2) -> C2 {
+        C2(self.0 + o.0, self.1 + o.1)
+    }
+    fn polar(phase: f64) -> C2 {
+        C2(libm::cos(phase), libm::sin(phase))
+    }
+}
+
+/// One piece of the closure sum (module docs): `c = e^{iφ} v̄`, the variance V of the angle
+/// noise before it, and its translation noise `E|w|²` and `e^{2iφ} E[w²]`.
+struct Piece {
+    c: C2,
+    v: f64,
+    n1: f64,
+    n2: C2,
+}
+
 /// The translation closure of a cycle given as signed edges in traversal order; `edge(e)`
 /// returns edge e's measurement and information. `None` if an edge's information is singular.
 pub fn translation_closure(terms: &[SignedEdge], edge: &dyn Fn(usize) -> Edge) -> Option<Closure> {
-    // Running poses where each edge's noise enters (module docs).
-    let mut pose = Pose2::default();
-    let mut frames = Vec::with_capacity(terms.len());
+    let mut pieces = Vec::with_capacity(2 * terms.len());
+    let (mut pose, mut var) = (Pose2::default(), 0.0);
     for t in terms {
-        let z = edge(t.edge as usize).measurement();
+        let e = edge(t.edge as usize);
+        let s = covariance(&e)?;
+        let z = e.measurement();
+        // E|w|² and E[w²] of the translation noise in the edge's frame.
+        let n1 = s[0][0] + s[1][1];
+        let w2 = C2(s[0][0] - s[1][1], 2.0 * s[0][1]);
+        let at = |phase: f64| C2::polar(phase);
         if t.sign > 0 {
+            // Z ⊕ ε = (t + R(θ) ε_t, θ + ε_θ): the translation at the current frame.
+            let noise = w2.mul(at(2.0 * (pose.theta + z.theta)));
+            let c = at(pose.theta).mul(C2(z.x, z.y));
+            pieces.push(Piece {
+                c,
+                v: var,
+                n1,
+                n2: noise,
+            });
             pose = pose.compose(z);
-            frames.push(pose);
+            var += s[2][2];
         } else {
-            frames.push(pose);
-            pose = pose.compose(z.inverse());
+            // (Z ⊕ ε)⁻¹ = ε⁻¹ ∘ Z⁻¹: the noise translation −ε_t, the angle −ε_θ, then Z⁻¹.
+            let noise = w2.mul(at(2.0 * pose.theta));
+            pieces.push(Piece {
+                c: C2::default(),
+                v: var,
+                n1,
+                n2: noise,
+            });
+            var += s[2][2];
+            let inv = z.inverse();
+            let c = at(pose.theta).mul(C2(inv.x, inv.y));
+            pieces.push(Piece {
+                c,
+                v: var,
+                n1: 0.0,
+                n2: C2::default(),
+            });
+            pose = pose.compose(inv);
         }
     }
     let r = [pose.x, pose.y];
-    let mut cov = [[0.0; 2]; 2];
-    for (t, p) in terms.iter().zip(&frames) {
-        let s = covariance(&edge(t.edge as usize))?;
-        let (sn, cs) = (libm::sin(p.theta), libm::cos(p.theta));
-        // G = [R(φ) | J (r − p)], 2×3.
-        let lever = [-(r[1] - p.y), r[0] - p.x];
-        let g = [[cs, -sn, lever[0]], [sn, cs, lever[1]]];
-        for a in 0..2 {
-            for b in 0..2 {
-                let mut v = 0.0;
-                for i in 0..3 {
-                    for j in 0..3 {
-                        v += g[a][i] * s[i][j] * g[b][j];
-                    }
-                }
-                cov[a][b] += v;
-            }
+    let (mut m, mut big_s, mut big_t) = (C2::default(), 0.0, C2::default());
+    for (k, a) in pieces.iter().enumerate() {
+        m = m.add(a.c.scale((-0.5 * a.v).exp()));
+        big_s += a.n1;
+        big_t = big_t.add(a.n2.scale((-2.0 * a.v).exp()));
+        for (l, b) in pieces[..=k].iter().enumerate() {
+            // Symmetric in (k, l): each pair off the diagonal counted twice (for S the real
+            // part of c_k c̄_l, since the (l, k) term is its conjugate).
+            let twice = if l == k { 1.0 } else { 2.0 };
+            let d = (a.v - b.v).abs();
+            big_s += twice * a.c.mul(b.c.conj()).0 * (-0.5 * d).exp();
+            let lo = a.v.min(b.v);
+            big_t = big_t.add(
+                a.c.mul(b.c)
+                    .scale(twice * (-0.5 * (a.v + b.v + 2.0 * lo)).exp()),
+            );
         }
     }
+    let cc = big_s - (m.0 * m.0 + m.1 * m.1);
+    let p = big_t.add(m.mul(m).scale(-1.0));
+    let cov = [[0.5 * (cc + p.0), 0.5 * p.1], [0.5 * p.1, 0.5 * (cc - p.0)]];
+    let y = r;
     let det = cov[0][0] * cov[1][1] - cov[0][1] * cov[1][0];
     let chi2 = if det > 0.0 && det.is_finite() {
-        (cov[1][1] * r[0] * r[0] - 2.0 * cov[0][1] * r[0] * r[1] + cov[0][0] * r[1] * r[1]) / det
-    } else if r == [0.0, 0.0] {
+        (cov[1][1] * y[0] * y[0] - 2.0 * cov[0][1] * y[0] * y[1] + cov[0][0] * y[1] * y[1]) / det
+    } else if y == [0.0, 0.0] {
         0.0
     } else {
         f64::INFINITY
@@ -134,12 +212,59 @@ mod tests {
         Edge::new(from, to, z, Information::diagonal(100.0, 100.0, 400.0)).unwrap()
     }
 
-    /// A square driven around exactly closes; shifting one translation by 1 m gives
-    /// χ² = 1 / Var of that direction, and the covariance matches a Monte-Carlo estimate.
-    #[test]
-    fn square_closes_and_covariance_matches_sampling() {
+    /// The covariance of the closure sampled with the edges' noise (right perturbations,
+    /// σ_t, σ_θ) agrees with the propagated one to `tol` of its largest variance.
+    fn assert_sampled(terms: &[SignedEdge], edges: &[Edge], st: f64, sa: f64, tol: f64) {
         use rand_chacha::ChaCha8Rng;
         use rand_chacha::rand_core::{Rng, SeedableRng};
+        let noisy_info = Information::diagonal(st.powi(-2), st.powi(-2), sa.powi(-2));
+        let model: Vec<Edge> = edges
+            .iter()
+            .map(|e| Edge::new(e.from(), e.to(), e.measurement(), noisy_info).unwrap())
+            .collect();
+        let c = translation_closure(terms, &|e| model[e]).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let mut gauss = || {
+            let u1 = 1.0 - (rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64;
+            let u2 = (rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64;
+            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+        };
+        let n = 40_000;
+        let (mut mean, mut acc) = ([0.0; 2], [[0.0; 2]; 2]);
+        for _ in 0..n {
+            let noisy: Vec<Edge> = model
+                .iter()
+                .map(|e| {
+                    let eps = Pose2::new(st * gauss(), st * gauss(), sa * gauss());
+                    edge(e.from(), e.to(), e.measurement().compose(eps))
+                })
+                .collect();
+            let r = translation_closure(terms, &|e| noisy[e]).unwrap().residual;
+            for a in 0..2 {
+                mean[a] += r[a] / n as f64;
+                for b in 0..2 {
+                    acc[a][b] += r[a] * r[b] / n as f64;
+                }
+            }
+        }
+        let scale = c.covariance[0][0].max(c.covariance[1][1]);
+        for a in 0..2 {
+            for b in 0..2 {
+                let sampled = acc[a][b] - mean[a] * mean[b];
+                let want = c.covariance[a][b];
+                assert!(
+                    (sampled - want).abs() < tol * scale,
+                    "σ_θ {sa}: Cov[{a}][{b}] sampled {sampled} vs propagated {want}"
+                );
+            }
+        }
+    }
+
+    /// A square driven around exactly closes; its covariance matches a Monte-Carlo estimate at
+    /// small and at large angle noise (where a linearised covariance is far off); a 1 m error
+    /// on the chord's translation fails the test.
+    #[test]
+    fn square_closes_and_covariance_matches_sampling() {
         let h = std::f64::consts::FRAC_PI_2;
         let z = [
             Pose2::new(2.0, 0.0, h),
@@ -147,7 +272,7 @@ mod tests {
             Pose2::new(2.0, 0.0, h),
         ];
         // Edges 0→1, 1→2, 2→3 along; chord 0→3 traversed along, then back against the path.
-        let chord = Pose2::new(0.0, -2.0, -h);
+        let chord = Pose2::new(0.0, 2.0, -h);
         let edges = [
             edge(0, 1, z[0]),
             edge(1, 2, z[1]),
@@ -163,49 +288,18 @@ mod tests {
         let c = translation_closure(&terms, &|e| edges[e]).unwrap();
         assert!(c.residual[0].abs() < 1e-12 && c.residual[1].abs() < 1e-12);
         assert!(c.chi2 < 1e-20);
-        // Monte Carlo with the edges' noise (right perturbations, σ_t = 0.1, σ_θ = 0.05).
-        let mut rng = ChaCha8Rng::seed_from_u64(7);
-        let mut gauss = || {
-            let u1 = (rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64 + 1e-300;
-            let u2 = (rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64;
-            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-        };
-        let n = 40_000;
-        let mut acc = [[0.0; 2]; 2];
-        for _ in 0..n {
-            let noisy: Vec<Edge> = edges
-                .iter()
-                .map(|e| {
-                    let eps = Pose2::new(0.1 * gauss(), 0.1 * gauss(), 0.05 * gauss());
-                    edge(e.from(), e.to(), e.measurement().compose(eps))
-                })
-                .collect();
-            let r = translation_closure(&terms, &|e| noisy[e]).unwrap().residual;
-            for a in 0..2 {
-                for b in 0..2 {
-                    acc[a][b] += r[a] * r[b] / n as f64;
-                }
-            }
-        }
-        for a in 0..2 {
-            for b in 0..2 {
-                let want = c.covariance[a][b];
-                assert!(
-                    (acc[a][b] - want).abs() < 0.05 * c.covariance[a][a].max(c.covariance[b][b]),
-                    "Cov[{a}][{b}]: sampled {} vs propagated {want}",
-                    acc[a][b]
-                );
-            }
-        }
+        assert_sampled(&terms, &edges, 0.1, 0.05, 0.05);
+        // Far beyond linearisation: σ_θ = 0.6 rad per edge.
+        assert_sampled(&terms, &edges, 0.1, 0.6, 0.05);
         // A 1 m error on the chord's translation.
         let bad = [
             edges[0],
             edges[1],
             edges[2],
-            edge(0, 3, Pose2::new(1.0, -2.0, -h)),
+            edge(0, 3, Pose2::new(1.0, 2.0, -h)),
         ];
         let b = translation_closure(&terms, &|e| bad[e]).unwrap();
-        assert!(b.chi2 > threshold(1e-6), "{}", b.chi2);
-        assert!((p_value(threshold(1e-3)) - 1e-3).abs() < 1e-15);
+        assert!(b.chi2 > threshold(1e-3), "{}", b.chi2);
+        assert!((p_value(threshold(1e-3)) - 1e-6).abs() < 1e-18);
     }
 }

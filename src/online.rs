@@ -21,6 +21,27 @@
 //! pipeline's fixed-point first screening and second screening on the current state — the
 //! same [`Screener`] code.
 //!
+//! **Quarantine** (on by default, [`OnlineConfig::quarantine`]; method
+//! [§11](crate::method#11-false-loop-closures)): a loop closure is tested *before* it is added.
+//! Its cycle is found by [`IncrementalBasis::probe`] and tested twice at the cycle's level α_t:
+//! the SE(2) translation closure ([`crate::closure`], `χ²_2 > −4 ln α_t`) and the angle (the
+//! screening above: an interval holding no integer). A loop closure failing either is
+//! **quarantined**: never added to the graph, the basis (no later cycle is routed through it),
+//! the γ model, the conditioning or the estimate; it is kept with its test, statistic and
+//! threshold ([`OnlineEstimator::rejected`], [`Step::quarantined`]). On data that follow the
+//! declared noise, the angle tests spend α/2 (the α-spending sequence) and the translation tests
+//! another α/2 at the same levels (with the margin of [`crate::closure`], checked empirically),
+//! so the probability that any genuine edge is quarantined is ≤ α. **Re-admission**: a quarantined loop closure is re-tested, through the same path a new
+//! loop closure takes (a new probe, so a shorter path that appeared since is used), when the
+//! number of cycles has doubled since its last test (and grown by at least 32): O(log ℓ) tests
+//! per edge. The re-test is at the per-cycle level α, not the family-wise α_t — stricter, so a
+//! false edge rarely slips in by being tried again, while a genuine edge quarantined by chance
+//! (or by a path through an accepted false edge that has since been bypassed) passes with
+//! probability ≥ 1 − 2α. A re-admitted edge is added as a new edge is ([`Step::readmitted`]);
+//! [`OnlineEstimator::graph`] holds the accepted edges in the order they were added and
+//! [`OnlineEstimator::input_index`] maps them to input order. With quarantine off no
+//! translation test is run and every edge is added (an inconsistent cycle is kept ambiguous).
+//!
 //! **The estimate** (modules `online/estimate.rs`, `online/laplacian.rs`): orientations and positions are kept as sparse
 //! square-root information factors grown by the same events as the basis — a new node (appended
 //! last, so the newest node is read in O(1)), a new edge (Givens rotations along the elimination
