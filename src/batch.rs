@@ -424,7 +424,7 @@ pub fn translation_failures(
         .enumerate()
         .filter_map(|(cycle, c)| {
             let closure = crate::closure::translation_closure(&c.terms, &|e| edges[e])?;
-            (!(closure.chi2 <= limit)).then(|| TranslationFailure {
+            crate::closure::fails(closure.chi2, limit).then(|| TranslationFailure {
                 cycle,
                 edges: c.terms.iter().map(|t| t.edge as usize).collect(),
                 chi2: closure.chi2,

@@ -62,6 +62,11 @@ pub fn threshold(level: f64) -> f64 {
     -4.0 * level.ln()
 }
 
+/// Whether a closure statistic fails the test at threshold `limit` (a NaN statistic fails).
+pub fn fails(chi2: f64, limit: f64) -> bool {
+    chi2.is_nan() || chi2 > limit
+}
+
 /// `P(χ²_2 > x) = e^{−x/2}`.
 pub fn p_value(chi2: f64) -> f64 {
     (-0.5 * chi2).exp()

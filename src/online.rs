@@ -506,7 +506,7 @@ impl OnlineEstimator {
             let of = |i: usize| if i == e { edge } else { graph.edges()[i] };
             let limit = closure::threshold(level);
             if let Some(c) = closure::translation_closure(&cycle.terms, &of)
-                && !(c.chi2 <= limit)
+                && closure::fails(c.chi2, limit)
             {
                 return Ok(Err(reject(TRANSLATION_TEST, c.chi2, limit)));
             }

@@ -59,7 +59,8 @@ pub struct Recorder {
 enum Record {
     Step {
         edge: Edge,
-        step: Step,
+        /// Boxed: a step with its lists is much larger than the other records.
+        step: Box<Step>,
         latency_ns: u64,
         time_ns: u64,
         newest: Option<Pose2>,
@@ -305,7 +306,7 @@ impl Recorder {
         let newest = est.newest().ok().flatten().map(|(_, p)| p);
         let record = Record::Step {
             edge: *edge,
-            step: step.clone(),
+            step: Box::new(step.clone()),
             latency_ns,
             time_ns,
             newest,
