@@ -387,7 +387,7 @@ pub struct TranslationFailure {
     pub cycle: usize,
     /// Its edges (indices in the graph).
     pub edges: Vec<usize>,
-    /// `χ²_2` of the closure ([`crate::closure`]).
+    /// `χ²_2` of the closure divided by the noise scale ([`crate::closure`]).
     pub chi2: f64,
     /// The threshold `−2 ln(level)` it exceeded.
     pub threshold: f64,
@@ -406,7 +406,8 @@ impl std::fmt::Display for TranslationFailure {
     }
 }
 
-/// The SE(2) translation closure test of every basis cycle ([`crate::closure`]), family-wise
+/// The SE(2) translation closure test of every basis cycle ([`crate::closure`]; statistic
+/// divided by the noise scale [`crate::closure::Scale`] of all the cycles), family-wise
 /// like the angle tests: each cycle at the per-cycle level of `config`
 /// ([`ScreeningConfig::level`]`(ℓ)`: α/(2ℓ) by default), so the ℓ translation tests spend α/2
 /// on data that follow the declared noise. Returns the cycles that fail, ascending.
@@ -418,16 +419,27 @@ pub fn translation_failures(
     let level = config.level(basis.cycles.len());
     let limit = crate::closure::threshold(level);
     let edges = graph.edges();
+    let chi2: Vec<Option<f64>> = basis
+        .cycles
+        .iter()
+        .map(|c| crate::closure::translation_closure(&c.terms, &|e| edges[e]).map(|x| x.chi2))
+        .collect();
+    let mut scale = crate::closure::Scale::default();
+    for &x in chi2.iter().flatten() {
+        scale.push(x);
+    }
+    let s = scale.value();
     basis
         .cycles
         .iter()
+        .zip(&chi2)
         .enumerate()
-        .filter_map(|(cycle, c)| {
-            let closure = crate::closure::translation_closure(&c.terms, &|e| edges[e])?;
-            crate::closure::fails(closure.chi2, limit).then(|| TranslationFailure {
+        .filter_map(|(cycle, (c, &x))| {
+            let tested = x? / s;
+            crate::closure::fails(tested, limit).then(|| TranslationFailure {
                 cycle,
                 edges: c.terms.iter().map(|t| t.edge as usize).collect(),
-                chi2: closure.chi2,
+                chi2: tested,
                 threshold: limit,
                 level,
             })

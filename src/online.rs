@@ -24,7 +24,8 @@
 //! **Quarantine** (on by default, [`OnlineConfig::quarantine`]; method
 //! [§11](crate::method#11-false-loop-closures)): a loop closure is tested *before* it is added.
 //! Its cycle is found by [`IncrementalBasis::probe`] and tested twice at the cycle's level α_t:
-//! the SE(2) translation closure ([`crate::closure`], `χ²_2 > −4 ln α_t`) and the angle (the
+//! the SE(2) translation closure ([`crate::closure`], `χ²_t / s > −4 ln α_t`, s the noise scale
+//! estimated from the accepted cycles, [`closure::Scale`]) and the angle (the
 //! screening above: an interval holding no integer). A loop closure failing either is
 //! **quarantined**: never added to the graph, the basis (no later cycle is routed through it),
 //! the γ model, the conditioning or the estimate; it is kept with its test, statistic and
@@ -296,6 +297,8 @@ pub struct OnlineEstimator {
     held: BTreeMap<usize, Held>,
     /// Their re-test schedule: (cycle count at which to re-test, input index).
     due: BTreeSet<(usize, usize)>,
+    /// The translation closures' noise scale, from the accepted cycles.
+    scale: closure::Scale,
 }
 
 /// A quarantined loop closure.
@@ -367,6 +370,7 @@ impl OnlineEstimator {
             input_of: Vec::new(),
             held: BTreeMap::new(),
             due: BTreeSet::new(),
+            scale: closure::Scale::default(),
         })
     }
 
@@ -501,14 +505,17 @@ impl OnlineEstimator {
             statistic,
             threshold,
         };
+        let mut translation = None;
         if quarantine {
             let graph = &self.graph;
             let of = |i: usize| if i == e { edge } else { graph.edges()[i] };
             let limit = closure::threshold(level);
-            if let Some(c) = closure::translation_closure(&cycle.terms, &of)
-                && closure::fails(c.chi2, limit)
-            {
-                return Ok(Err(reject(TRANSLATION_TEST, c.chi2, limit)));
+            translation = closure::translation_closure(&cycle.terms, &of).map(|c| c.chi2);
+            if let Some(chi2) = translation {
+                let tested = chi2 / self.scale.value();
+                if closure::fails(tested, limit) {
+                    return Ok(Err(reject(TRANSLATION_TEST, tested, limit)));
+                }
             }
         }
         self.sigma2.push(edge.sigma2());
@@ -528,6 +535,9 @@ impl OnlineEstimator {
         self.graph.add_edge(edge, NodePolicy::CreateUnknown)?;
         self.basis.commit(a, b, edge.sigma2(), true);
         self.accept(input);
+        if let Some(chi2) = translation {
+            self.scale.push(chi2);
+        }
         self.counters.cycles += 1;
         self.chord_cycle[e] = t as u32;
         for term in &cycle.terms[1..] {
