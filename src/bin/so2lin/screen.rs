@@ -232,15 +232,18 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
         &rejected,
         "fail their cycle tests as they arrive in robot order (`stream` quarantines them, `solve` leaves them out; the screening above includes them)",
     );
+    let edges_words = if rejected.is_empty() {
+        crate::accepted_words(r.edges, 0)
+    } else {
+        format!(
+            "computed with all {} edges, including the {} listed above",
+            r.edges,
+            rejected.len()
+        )
+    };
     println!(
-        "success probability ≥ {:.6} (integer bootstrapping; assumes the declared noise; {}{})",
-        r.success_lower_bound,
-        crate::accepted_words(r.edges, 0),
-        if rejected.is_empty() {
-            String::new()
-        } else {
-            format!(", including the {} listed above", rejected.len())
-        }
+        "success probability ≥ {:.6} (integer bootstrapping; assumes the declared noise; {edges_words})",
+        r.success_lower_bound
     );
     println!(
         "seconds: read {read_s:.4}, basis {:.4}, screening {:.4}, estimate {estimate_s:.4}, total {total:.4}",
