@@ -96,7 +96,7 @@ const Q99: f64 = 9.210_340_371_976_184;
 impl Scale {
     /// Record the statistic of an accepted cycle (NaN and negative values are ignored).
     pub fn push(&mut self, chi2: f64) {
-        if !(chi2 >= 0.0) {
+        if chi2.is_nan() || chi2 < 0.0 {
             return;
         }
         let b = chi2.to_bits();
