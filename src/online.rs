@@ -890,7 +890,8 @@ impl OnlineEstimator {
         (0..self.model.len()).map(|i| self.best_gamma(i)).collect()
     }
 
-    /// Current best wraps k of every edge (zero on tree edges): `C k = γ` for [`Self::gamma`].
+    /// Current best wraps k of every edge of [`Self::graph`] (zero on tree edges; quarantined
+    /// loop closures are not in it): `C k = γ` for [`Self::gamma`].
     pub fn wraps(&self) -> Result<Vec<i64>, OnlineError> {
         Ok(self.wrap.clone())
     }
