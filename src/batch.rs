@@ -28,6 +28,13 @@
 //!    (the cost drop, χ²_3 for a genuine edge in the linear-Gaussian model) `> Φ` rejects
 //!    it. This catches a false edge the map has bent to fit, whose residual is small.
 //!
+//! Before the first pass ([`RobustConfig::quarantine`], on by default) the graph is streamed
+//! through the online estimator in robot order with quarantine on (family-wise at α, angle and
+//! SE(2) translation closure of each new cycle, [`crate::online`]): the loop closures it
+//! quarantines are rejected (tests `cycle_angle`, `cycle_translation`) and the passes start
+//! from the graph without them. Tested cycle by cycle as they close, a false loop closure is
+//! met before any later cycle is routed through it; the passes then catch what slipped through.
+//!
 //! After a pass that rejected edges, the graph without them is screened again and solved from
 //! its own θ* by a new pass (at most five passes); the final poses are the plain refinement
 //! on the edges kept: on clean data, the ordinary least-squares optimum.
@@ -129,13 +136,16 @@ pub struct Solution {
 /// A loop closure the robust kernel rejected.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct RejectedEdge {
-    /// 0-based index in the graph's edge order.
+    /// 0-based index in the input order (the graph's edge order; online, the order of arrival).
     pub edge: usize,
     /// Source node id.
     pub from: NodeId,
     /// Target node id.
     pub to: NodeId,
-    /// The test: `"se2_chi2"` (the edge's `e_eᵀ Ω_e e_e` at the robust solution, 3 dof).
+    /// The test: `"se2_chi2"` (the edge's `e_eᵀ Ω_e e_e` at the robust solution, 3 dof), or
+    /// the online tests of its cycle at arrival, `"cycle_angle"` (statistic: the distance of
+    /// the conditional mean of γ to the nearest integer in σ; threshold q) and
+    /// `"cycle_translation"` (statistic: χ²₂ of the translation closure, [`crate::closure`]).
     pub test: &'static str,
     /// The statistic χ²_e.
     pub statistic: f64,
@@ -150,6 +160,9 @@ pub struct RobustConfig {
     pub alpha: f64,
     /// Most reweighting rounds per stage. Default 20.
     pub rounds: usize,
+    /// Stream the graph through the online estimator first (robot order, quarantine on, at
+    /// `alpha`) and leave its quarantined loop closures out (module docs). Default on.
+    pub quarantine: bool,
 }
 
 impl Default for RobustConfig {
@@ -157,6 +170,7 @@ impl Default for RobustConfig {
         Self {
             alpha: 0.01,
             rounds: 20,
+            quarantine: true,
         }
     }
 }
@@ -179,6 +193,9 @@ pub enum SolveError {
     /// Screening the graph without the rejected edges failed.
     #[error("screening without the rejected loop closures: {0}")]
     Screening(Box<BatchError>),
+    /// The quarantine pass (the graph streamed through the online estimator) failed.
+    #[error("quarantine pass: {0}")]
+    Quarantine(String),
     /// Screening the graph without the rejected edges left no hypothesis.
     #[error("screening without the rejected loop closures left no hypothesis")]
     NoHypothesis,
@@ -273,7 +290,27 @@ pub fn solve_robust(
     let mut theta0 = orient.orientations(&result.wraps(h)?);
     let mut alive: Vec<usize> = (0..edges.len()).collect();
     let mut g = graph.clone();
-    let mut rejected = Vec::new();
+    let mut rejected = if robust.quarantine {
+        quarantined(graph, robust.alpha)?
+    } else {
+        Vec::new()
+    };
+    // The graph without the rejected edges, re-screened, and its own θ*.
+    let without = |rejected: &[RejectedEdge], alive: &mut Vec<usize>| {
+        let mut keep = vec![1.0; edges.len()];
+        for r in rejected {
+            keep[r.edge] = 0.0;
+        }
+        alive.retain(|&e| keep[e] == 1.0);
+        let g = reweighted(graph, &keep)?;
+        let r = screen(&g, &screening)?;
+        let best = r.hypotheses.first().ok_or(SolveError::NoHypothesis)?;
+        let theta0 = OrientationEstimator::new(&g)?.orientations(&r.wraps(best)?);
+        Ok::<_, SolveError>((g, theta0))
+    };
+    if !rejected.is_empty() {
+        (g, theta0) = without(&rejected, &mut alive)?;
+    }
     let mut first = None;
     let mut x;
     let mut pass = 0;
@@ -297,15 +334,7 @@ pub fn solve_robust(
             });
         }
         rejected.sort_by_key(|r| r.edge);
-        let mut keep = vec![1.0; edges.len()];
-        for r in &rejected {
-            keep[r.edge] = 0.0;
-        }
-        alive.retain(|&e| keep[e] == 1.0);
-        g = reweighted(graph, &keep)?;
-        let r = screen(&g, &screening)?;
-        let best = r.hypotheses.first().ok_or(SolveError::NoHypothesis)?;
-        theta0 = OrientationEstimator::new(&g)?.orientations(&r.wraps(best)?);
+        (g, theta0) = without(&rejected, &mut alive)?;
     }
     let refined = crate::refine::refine(&g, &x, refine)?;
     let (chi2_orientation, linear) = first.unwrap_or_default();
@@ -322,6 +351,102 @@ pub fn solve_robust(
         rejected,
         seconds: t.elapsed().as_secs_f64(),
     })
+}
+
+/// The loop closures the online estimator quarantines when `graph` is streamed in robot order
+/// with the default screening at level `alpha` (indices in `graph`'s edge order, ascending):
+/// what [`solve_robust`] leaves out before its first pass.
+pub fn quarantined(graph: &PoseGraph, alpha: f64) -> Result<Vec<RejectedEdge>, SolveError> {
+    let config = crate::online::OnlineConfig {
+        screening: ScreeningConfig {
+            alpha,
+            ..ScreeningConfig::default()
+        },
+        quarantine: true,
+    };
+    let numerical = |e: crate::online::OnlineError| SolveError::Quarantine(e.to_string());
+    let mut est = crate::online::OnlineEstimator::new(config).map_err(numerical)?;
+    let order = crate::online::robot_order_indices(graph.edges());
+    for &i in &order {
+        est.add_edge(graph.edges()[i]).map_err(numerical)?;
+    }
+    let mut out: Vec<RejectedEdge> = est
+        .rejected()
+        .into_iter()
+        .map(|r| RejectedEdge {
+            edge: order[r.edge],
+            ..r
+        })
+        .collect();
+    out.sort_by_key(|r| r.edge);
+    Ok(out)
+}
+
+/// A basis cycle whose SE(2) translation closure failed its test ([`translation_failures`]).
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct TranslationFailure {
+    /// Cycle index in the basis.
+    pub cycle: usize,
+    /// Its edges (indices in the graph).
+    pub edges: Vec<usize>,
+    /// `χ²_2` of the closure divided by the noise scale ([`crate::closure`]).
+    pub chi2: f64,
+    /// The threshold `−2 ln(level)` it exceeded.
+    pub threshold: f64,
+    /// The level of the test.
+    pub level: f64,
+}
+
+impl std::fmt::Display for TranslationFailure {
+    /// `cycle 402 failed its translation closure test at level 2.6e-6: χ² 31.2 > 25.7`.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "cycle {} failed its translation closure test at level {:.1e}: χ² {:.1} > {:.1}",
+            self.cycle, self.level, self.chi2, self.threshold
+        )
+    }
+}
+
+/// The SE(2) translation closure test of every basis cycle ([`crate::closure`]; statistic
+/// divided by the noise scale [`crate::closure::Scale`] of all the cycles), family-wise
+/// like the angle tests: each cycle at the per-cycle level of `config`
+/// ([`ScreeningConfig::level`]`(ℓ)`: α/(2ℓ) by default), so the ℓ translation tests spend α/2
+/// on data that follow the declared noise. Returns the cycles that fail, ascending.
+pub fn translation_failures(
+    graph: &PoseGraph,
+    basis: &CycleBasis,
+    config: &ScreeningConfig,
+) -> Vec<TranslationFailure> {
+    let level = config.level(basis.cycles.len());
+    let limit = crate::closure::threshold(level);
+    let edges = graph.edges();
+    let chi2: Vec<Option<f64>> = basis
+        .cycles
+        .iter()
+        .map(|c| crate::closure::translation_closure(&c.terms, &|e| edges[e]).map(|x| x.chi2))
+        .collect();
+    let mut scale = crate::closure::Scale::default();
+    for &x in chi2.iter().flatten() {
+        scale.push(x);
+    }
+    let s = scale.value();
+    basis
+        .cycles
+        .iter()
+        .zip(&chi2)
+        .enumerate()
+        .filter_map(|(cycle, (c, &x))| {
+            let tested = x? / s;
+            crate::closure::fails(tested, limit).then(|| TranslationFailure {
+                cycle,
+                edges: c.terms.iter().map(|t| t.edge as usize).collect(),
+                chi2: tested,
+                threshold: limit,
+                level,
+            })
+        })
+        .collect()
 }
 
 /// Loop closures tested by leaving them out, per pass (those with the largest χ²_e).

@@ -135,6 +135,24 @@ impl GammaModel {
         t
     }
 
+    /// Remove the last cycle (undo [`push_cycle`](Self::push_cycle) of `cycle`, the same
+    /// cycle): the online estimator tests a new loop closure's cycle and takes it back when the
+    /// loop closure is quarantined. It must not have been determined.
+    pub fn pop_cycle(&mut self, cycle: &Cycle) {
+        let Some(row) = self.rows.pop() else { return };
+        let last = self.mu.len() as u32 - 1;
+        for &(c, _) in &row {
+            if c != last {
+                // Column `last` is the largest, so it is the last entry of every row it is in.
+                self.rows[c as usize].pop();
+            }
+        }
+        self.mu.pop();
+        for term in &cycle.terms {
+            self.edge_cycles[term.edge as usize].pop();
+        }
+    }
+
     /// μ.
     pub fn mu(&self) -> &[f64] {
         &self.mu

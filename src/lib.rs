@@ -10,6 +10,7 @@
 //! - [`io`]: g2o / TORO readers (streaming and whole-file) and a g2o writer;
 //! - [`sim`]: a seeded Manhattan-world simulator with ground truth;
 //! - [`tree`]: spanning trees (odometric, minimum-weight) and forests;
+//! - [`closure`]: the SE(2) translation closure of a cycle, its χ² test and noise scale;
 //! - [`cycles`]: cycle bases (fundamental, incremental) as signed edge lists;
 //! - [`gamma`]: the Gaussian model of the cycle integers γ and its sequential conditioning;
 //! - [`screening`]: first (per-cycle) and second (joint) screening, success-rate bound;
@@ -32,6 +33,7 @@
 #![warn(missing_docs)]
 
 pub mod batch;
+pub mod closure;
 pub mod cycles;
 pub mod error;
 pub mod estimate;

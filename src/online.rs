@@ -21,6 +21,28 @@
 //! pipeline's fixed-point first screening and second screening on the current state — the
 //! same [`Screener`] code.
 //!
+//! **Quarantine** (on by default, [`OnlineConfig::quarantine`]; method
+//! [§11](crate::method#11-false-loop-closures)): a loop closure is tested *before* it is added.
+//! Its cycle is found by [`IncrementalBasis::probe`] and tested twice at the cycle's level α_t:
+//! the SE(2) translation closure ([`crate::closure`], `χ²_t / s > −4 ln α_t`, s the noise scale
+//! estimated from the accepted cycles, [`closure::Scale`]) and the angle (the
+//! screening above: an interval holding no integer). A loop closure failing either is
+//! **quarantined**: never added to the graph, the basis (no later cycle is routed through it),
+//! the γ model, the conditioning or the estimate; it is kept with its test, statistic and
+//! threshold ([`OnlineEstimator::rejected`], [`Step::quarantined`]). On data that follow the
+//! declared noise, the angle tests spend α/2 (the α-spending sequence) and the translation tests
+//! another α/2 at the same levels (with the margin of [`crate::closure`], checked empirically),
+//! so the probability that any genuine edge is quarantined is ≤ α. **Re-admission**: a quarantined loop closure is re-tested, through the same path a new
+//! loop closure takes (a new probe, so a shorter path that appeared since is used), when the
+//! number of cycles has doubled since its last test (and grown by at least 32): O(log ℓ) tests
+//! per edge. The re-test is at the per-cycle level α, not the family-wise α_t — stricter, so a
+//! false edge rarely slips in by being tried again, while a genuine edge quarantined by chance
+//! (or by a path through an accepted false edge that has since been bypassed) passes with
+//! probability ≥ 1 − 2α. A re-admitted edge is added as a new edge is ([`Step::readmitted`]);
+//! [`OnlineEstimator::graph`] holds the accepted edges in the order they were added and
+//! [`OnlineEstimator::input_index`] maps them to input order. With quarantine off no
+//! translation test is run and every edge is added (an inconsistent cycle is kept ambiguous).
+//!
 //! **The estimate** (modules `online/estimate.rs`, `online/laplacian.rs`): orientations and positions are kept as sparse
 //! square-root information factors grown by the same events as the basis — a new node (appended
 //! last, so the newest node is read in O(1)), a new edge (Givens rotations along the elimination
@@ -52,20 +74,37 @@ use crate::cycles::{BasisKind, Cycle, CycleBasis, IncrementalBasis};
 use crate::estimate::EstimateError;
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
+use crate::batch::RejectedEdge;
+use crate::closure;
 use crate::gamma::{Conditioner, GammaModel, Moments, SingularError};
 use crate::graph::{Edge, GraphError, Information, NodeId, NodePolicy, Pose2, PoseGraph};
 use crate::screening::{
-    ConfigError, Hypothesis, Interval, Screener, ScreeningConfig, rounding_success,
+    ConfigError, Hypothesis, Interval, Screener, ScreeningConfig, normalised_residual,
+    rounding_success,
 };
 use crate::wraps::WrapError;
 
 /// Settings of the online estimator (deserialised fields left out take their defaults).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, serde::Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, serde::Deserialize)]
 #[serde(default)]
 pub struct OnlineConfig {
     /// Screening settings (α, degrees of freedom, family-wise, hypothesis cap). Family-wise,
     /// cycle t is tested at [`ScreeningConfig::online_level`]`(t)` (α-spending).
     pub screening: ScreeningConfig,
+    /// Quarantine a loop closure whose cycle fails its angle or translation test when it
+    /// arrives (module docs). On by default; off, every edge is added (the cycle is then
+    /// kept ambiguous with its two nearest integers) and no translation test is run.
+    pub quarantine: bool,
+}
+
+impl Default for OnlineConfig {
+    /// The default screening, quarantine on.
+    fn default() -> Self {
+        Self {
+            screening: ScreeningConfig::default(),
+            quarantine: true,
+        }
+    }
 }
 
 /// What a step decided about a cycle.
@@ -135,6 +174,9 @@ pub enum StepKind {
     },
     /// A chord: closed a new cycle.
     Cycle(CycleStep),
+    /// A loop closure whose cycle failed its test: quarantined (see [`Step::quarantined`]),
+    /// not added to the graph.
+    Quarantined,
 }
 
 /// The outcome of [`OnlineEstimator::add_edge`].
@@ -146,13 +188,23 @@ pub struct Step {
     pub kind: StepKind,
     /// Earlier cycles re-screened by this step, ascending.
     pub rescreened: Vec<Rescreen>,
+    /// The edge quarantined by this step (the arriving loop closure, with its test).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub quarantined: Vec<RejectedEdge>,
+    /// Input indices of quarantined edges re-admitted at this step, ascending.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub readmitted: Vec<usize>,
 }
 
 /// Counters of a run.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
 pub struct Counters {
-    /// Edges accepted.
+    /// Edges accepted (added to the graph).
     pub steps: usize,
+    /// Loop closures in quarantine now.
+    pub quarantined: usize,
+    /// Quarantined loop closures re-admitted so far.
+    pub readmitted: usize,
     /// Tree edges among them.
     pub tree_edges: usize,
     /// Cycles closed.
@@ -197,6 +249,15 @@ pub enum OnlineError {
     /// the basis.
     #[error("finish: {0}")]
     Wraps(#[from] WrapError),
+    /// A loop closure between two nodes of one component found no path between them in the
+    /// basis graph (an internal inconsistency; the edge is refused, nothing changes).
+    #[error("loop closure {from} → {to}: no path between its nodes in the basis graph")]
+    NoCycle {
+        /// The edge's first node.
+        from: NodeId,
+        /// The edge's second node.
+        to: NodeId,
+    },
 }
 
 /// The online estimator.
@@ -246,6 +307,34 @@ pub struct OnlineEstimator {
     worker: laplacian::Worker,
     /// Steps that waited for a renewal of L.
     cond_waits: usize,
+    /// Edges given so far (accepted or quarantined): the next input index.
+    arrivals: usize,
+    /// Input index of each edge of the graph.
+    input_of: Vec<u32>,
+    /// Quarantined loop closures by input index.
+    held: BTreeMap<usize, Held>,
+    /// Their re-test schedule: (cycle count at which to re-test, input index).
+    due: BTreeSet<(usize, usize)>,
+    /// The translation closures' noise scale, from the accepted cycles.
+    scale: closure::Scale,
+}
+
+/// A quarantined loop closure.
+#[derive(Clone, Copy, Debug)]
+struct Held {
+    edge: Edge,
+    rejected: RejectedEdge,
+}
+
+/// Name of the angle test in [`RejectedEdge::test`]: the statistic is the residual in σ.
+pub const ANGLE_TEST: &str = "cycle_angle";
+/// Name of the translation test in [`RejectedEdge::test`]: the statistic is χ²₂.
+pub const TRANSLATION_TEST: &str = "cycle_translation";
+
+/// The cycle count at which a loop closure quarantined when `cycles` had closed is re-tested:
+/// twice as many, and at least 32 more.
+fn retest_after(cycles: usize) -> usize {
+    cycles.saturating_mul(2).max(cycles + 32)
 }
 
 /// A renewal of the P_UU factor built beside the live one ([`OnlineEstimator::maybe_reorder`]).
@@ -309,6 +398,11 @@ impl OnlineEstimator {
             renewal: None,
             worker: laplacian::Worker::default(),
             cond_waits: 0,
+            arrivals: 0,
+            input_of: Vec::new(),
+            held: BTreeMap::new(),
+            due: BTreeSet::new(),
+            scale: closure::Scale::default(),
         })
     }
 
@@ -348,10 +442,38 @@ impl OnlineEstimator {
     }
 
     fn add_edge_inner(&mut self, edge: Edge) -> Result<Step, OnlineError> {
-        let e = self.graph.edge_count();
-        if e >= u32::MAX as usize {
+        let input = self.arrivals;
+        if input >= u32::MAX as usize {
             return Err(OnlineError::Capacity(u32::MAX as usize));
         }
+        let ends = (
+            self.graph.node_index(edge.from()),
+            self.graph.node_index(edge.to()),
+        );
+        let mut step = match ends {
+            (Some(a), Some(b)) if self.basis.connected(a, b) => {
+                match self.add_chord(
+                    input,
+                    edge,
+                    a,
+                    b,
+                    self.config.screening.online_level(self.model.len()),
+                )? {
+                    Ok(step) => step,
+                    Err(rejected) => self.hold(edge, rejected),
+                }
+            }
+            _ => self.add_tree_edge(input, edge)?,
+        };
+        self.arrivals += 1;
+        self.retest_due(&mut step)?;
+        self.refresh_counters();
+        Ok(step)
+    }
+
+    /// A tree edge: a new node, or two components joined.
+    fn add_tree_edge(&mut self, input: usize, edge: Edge) -> Result<Step, OnlineError> {
+        let e = self.graph.edge_count();
         let nodes_before = self.graph.node_count();
         // Cannot fail with CreateUnknown; mapped rather than unwrapped all the same.
         self.graph.add_edge(edge, NodePolicy::CreateUnknown)?;
@@ -361,26 +483,94 @@ impl OnlineEstimator {
         }
         self.sigma2.push(edge.sigma2());
         self.delta.push(edge.delta());
+        self.accept(input);
+        self.basis.commit(a, b, edge.sigma2(), false);
+        self.counters.tree_edges += 1;
+        let new_node = self.graph.node_count() > nodes_before;
+        self.push_edge(e, a, b, &[]);
+        self.after_step();
+        Ok(Step {
+            edge: input,
+            kind: StepKind::Tree {
+                new_node,
+                joined_components: !new_node,
+            },
+            rescreened: Vec::new(),
+            quarantined: Vec::new(),
+            readmitted: Vec::new(),
+        })
+    }
+
+    /// The per-edge state of an accepted edge (σ² and δ already pushed).
+    fn accept(&mut self, input: usize) {
+        self.input_of.push(input as u32);
         self.wrap.push(0);
         self.chord_cycle.push(NONE);
         self.users.push(SmallVec::new());
         self.counters.steps += 1;
-        let Some(cycle) = self.basis.add_edge(a, b, edge.sigma2()) else {
-            self.counters.tree_edges += 1;
-            let new_node = self.graph.node_count() > nodes_before;
-            self.push_edge(e, a, b, &[]);
-            self.after_step();
-            return Ok(Step {
-                edge: e,
-                kind: StepKind::Tree {
-                    new_node,
-                    joined_components: !new_node,
-                },
-                rescreened: Vec::new(),
-            });
+    }
+
+    /// A loop closure between connected nodes a and b (input index `input`). Its cycle is the
+    /// one [`IncrementalBasis::probe`] finds; with quarantine on, it is tested first —
+    /// translation closure at `level`, then the angle (the cycle's screening) — and a failed
+    /// test returns the rejection with nothing changed. Otherwise the edge is added: basis,
+    /// γ model, conditioning, estimate.
+    fn add_chord(
+        &mut self,
+        input: usize,
+        edge: Edge,
+        a: usize,
+        b: usize,
+        level: f64,
+    ) -> Result<Result<Step, RejectedEdge>, OnlineError> {
+        let e = self.graph.edge_count();
+        let cycle = self.basis.probe(a, b).ok_or(OnlineError::NoCycle {
+            from: edge.from(),
+            to: edge.to(),
+        })?;
+        let quarantine = self.config.quarantine;
+        let reject = |test: &'static str, statistic: f64, threshold: f64| RejectedEdge {
+            edge: input,
+            from: edge.from(),
+            to: edge.to(),
+            test,
+            statistic,
+            threshold,
         };
-        self.counters.cycles += 1;
+        let mut translation = None;
+        if quarantine {
+            let graph = &self.graph;
+            let of = |i: usize| if i == e { edge } else { graph.edges()[i] };
+            let limit = closure::threshold(level);
+            translation = closure::translation_closure(&cycle.terms, &of).map(|c| c.chi2);
+            if let Some(chi2) = translation {
+                let tested = chi2 / self.scale.value();
+                if closure::fails(tested, limit) {
+                    return Ok(Err(reject(TRANSLATION_TEST, tested, limit)));
+                }
+            }
+        }
+        self.sigma2.push(edge.sigma2());
+        self.delta.push(edge.delta());
         let t = self.model.push_cycle(&cycle, &self.sigma2, &self.delta);
+        self.screener.grow(t + 1);
+        let q = self.config.screening.quantile_at(level);
+        let (m, iv, determined) = self.screener.screen(&self.model, t, q, || edges_of(&cycle));
+        if quarantine && iv.inconsistent {
+            self.model.pop_cycle(&cycle);
+            self.screener.truncate(t);
+            self.sigma2.pop();
+            self.delta.pop();
+            return Ok(Err(reject(ANGLE_TEST, normalised_residual(m), q)));
+        }
+        // Cannot fail with CreateUnknown between known nodes.
+        self.graph.add_edge(edge, NodePolicy::CreateUnknown)?;
+        self.basis.commit(a, b, edge.sigma2(), true);
+        self.accept(input);
+        if let Some(chi2) = translation {
+            self.scale.push(chi2);
+        }
+        self.counters.cycles += 1;
         self.chord_cycle[e] = t as u32;
         for term in &cycle.terms[1..] {
             if self.chord_cycle[term.edge as usize] != NONE {
@@ -389,14 +579,6 @@ impl OnlineEstimator {
         }
         self.cycles.push(cycle);
         self.gamma.push(0);
-        self.screener.grow(t + 1);
-        let cycles = &self.cycles;
-        let (m, iv, determined) = self.screener.screen(
-            &self.model,
-            t,
-            self.config.screening.online_quantile(t),
-            || edges_of(&cycles[t]),
-        );
         let mut rescreened = Vec::new();
         if determined {
             self.propagate(t, &mut rescreened);
@@ -411,8 +593,8 @@ impl OnlineEstimator {
             self.update_wraps(std::iter::once(t).chain(rescreened.iter().map(|r| r.cycle)));
         self.push_edge(e, a, b, &changed);
         self.after_step();
-        Ok(Step {
-            edge: e,
+        Ok(Ok(Step {
+            edge: input,
             kind: StepKind::Cycle(CycleStep {
                 cycle: t,
                 mean: m.mean,
@@ -421,7 +603,72 @@ impl OnlineEstimator {
                 decision: Decision::of(iv, determined),
             }),
             rescreened,
-        })
+            quarantined: Vec::new(),
+            readmitted: Vec::new(),
+        }))
+    }
+
+    /// Quarantine a loop closure that failed its test at arrival; it is re-tested when the
+    /// cycles have doubled ([`Self::retest_due`]).
+    fn hold(&mut self, edge: Edge, rejected: RejectedEdge) -> Step {
+        let input = rejected.edge;
+        let due = retest_after(self.counters.cycles);
+        self.held.insert(input, Held { edge, rejected });
+        self.due.insert((due, input));
+        Step {
+            edge: input,
+            kind: StepKind::Quarantined,
+            rescreened: Vec::new(),
+            quarantined: vec![rejected],
+            readmitted: Vec::new(),
+        }
+    }
+
+    /// Re-test the quarantined loop closures whose time has come (module docs: re-admission),
+    /// through the path a new loop closure takes, at the per-cycle level α. Re-admitted edges
+    /// and the cycles their determination re-screened are added to `step`.
+    fn retest_due(&mut self, step: &mut Step) -> Result<(), OnlineError> {
+        while let Some(&(due, input)) = self.due.first() {
+            if due > self.counters.cycles {
+                break;
+            }
+            self.due.pop_first();
+            let Some(held) = self.held.remove(&input) else {
+                continue;
+            };
+            let (Some(a), Some(b)) = (
+                self.graph.node_index(held.edge.from()),
+                self.graph.node_index(held.edge.to()),
+            ) else {
+                continue;
+            };
+            let level = self.config.screening.alpha;
+            match self.add_chord(input, held.edge, a, b, level)? {
+                Ok(s) => {
+                    self.counters.readmitted += 1;
+                    step.readmitted.push(input);
+                    for r in s.rescreened {
+                        match step.rescreened.iter_mut().find(|x| x.cycle == r.cycle) {
+                            Some(x) => {
+                                *x = Rescreen {
+                                    before: x.before,
+                                    ..r
+                                }
+                            }
+                            None => step.rescreened.push(r),
+                        }
+                    }
+                    step.rescreened.sort_by_key(|x| x.cycle);
+                }
+                Err(rejected) => {
+                    let due = retest_after(self.counters.cycles);
+                    let edge = held.edge;
+                    self.held.insert(input, Held { edge, rejected });
+                    self.due.insert((due, input));
+                }
+            }
+        }
+        Ok(())
     }
 
     /// `δ_e − 2π k_e`: the unwrapped measurement of edge e.
@@ -650,6 +897,7 @@ impl OnlineEstimator {
     }
 
     fn refresh_counters(&mut self) {
+        self.counters.quarantined = self.held.len();
         self.counters.determined = self.screener.cond.len();
         self.counters.ambiguous = self.ambiguous.len();
         self.counters.inconsistent = self.screener.inconsistent_count();
@@ -663,9 +911,28 @@ impl OnlineEstimator {
         self.counters
     }
 
-    /// The graph so far.
+    /// The graph so far: the accepted edges, in the order they were added (quarantined loop
+    /// closures are not in it; a re-admitted one is added when it is re-admitted).
+    /// [`Self::input_index`] maps its edges to input order.
     pub fn graph(&self) -> &PoseGraph {
         &self.graph
+    }
+
+    /// The input index (0-based, in order of arrival) of edge `e` of [`Self::graph`]; the
+    /// identity while nothing was quarantined.
+    pub fn input_index(&self, e: usize) -> Option<usize> {
+        self.input_of.get(e).map(|&i| i as usize)
+    }
+
+    /// Number of edges given so far, accepted or quarantined.
+    pub fn arrivals(&self) -> usize {
+        self.arrivals
+    }
+
+    /// The loop closures in quarantine now, by input index: each with the test it failed, its
+    /// statistic and the threshold it exceeded (at its last test).
+    pub fn rejected(&self) -> Vec<RejectedEdge> {
+        self.held.values().map(|h| h.rejected).collect()
     }
 
     /// The cycles closed so far (the incremental basis), in order.
@@ -684,7 +951,8 @@ impl OnlineEstimator {
         (0..self.model.len()).map(|i| self.best_gamma(i)).collect()
     }
 
-    /// Current best wraps k of every edge (zero on tree edges): `C k = γ` for [`Self::gamma`].
+    /// Current best wraps k of every edge of [`Self::graph`] (zero on tree edges; quarantined
+    /// loop closures are not in it): `C k = γ` for [`Self::gamma`].
     pub fn wraps(&self) -> Result<Vec<i64>, OnlineError> {
         Ok(self.wrap.clone())
     }
@@ -830,6 +1098,15 @@ fn edges_of(c: &Cycle) -> Vec<usize> {
 /// two nodes. Files that list all odometry first and every loop closure after (M3500) are
 /// streamed as a robot would have produced them; a file already in robot order is unchanged.
 pub fn robot_order(edges: &[Edge]) -> Vec<Edge> {
+    robot_order_indices(edges)
+        .into_iter()
+        .map(|i| edges[i])
+        .collect()
+}
+
+/// The permutation behind [`robot_order`]: position k of the robot order holds
+/// `edges[robot_order_indices(edges)[k]]`.
+pub fn robot_order_indices(edges: &[Edge]) -> Vec<usize> {
     let mut first: BTreeMap<NodeId, usize> = BTreeMap::new();
     for e in edges {
         for n in [e.from(), e.to()] {
@@ -838,7 +1115,7 @@ pub fn robot_order(edges: &[Edge]) -> Vec<Edge> {
         }
     }
     let key = |e: &Edge| first[&e.from()].max(first[&e.to()]);
-    let mut out = edges.to_vec();
-    out.sort_by_key(key);
+    let mut out: Vec<usize> = (0..edges.len()).collect();
+    out.sort_by_key(|&i| key(&edges[i]));
     out
 }

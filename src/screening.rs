@@ -643,6 +643,16 @@ impl Screener {
         self.inconsistent.resize(cycles, None);
     }
 
+    /// Forget the cycles from `len` on (never determined ones): the online estimator takes back
+    /// the cycle of a quarantined loop closure. Their failed tests are forgotten too.
+    pub fn truncate(&mut self, len: usize) {
+        for x in self.inconsistent.drain(len.min(self.inconsistent.len())..) {
+            self.inconsistent_count -= usize::from(x.is_some());
+        }
+        self.intervals.truncate(len);
+        self.determined.truncate(len);
+    }
+
     /// Current candidates of cycle i.
     pub fn interval(&self, i: usize) -> Interval {
         self.intervals[i]

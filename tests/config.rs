@@ -29,6 +29,7 @@ fn screening() -> ScreeningConfig {
 fn configs_round_trip_through_json() {
     round_trip(OnlineConfig {
         screening: screening(),
+        quarantine: false,
     });
     round_trip(BatchConfig {
         basis: BasisKind::Mcb,

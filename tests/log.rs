@@ -416,3 +416,57 @@ fn an_idle_writer_flushes_within_the_interval() {
     assert_eq!(steps, 3, "the steps never reached the sink");
     rec.finish(&mut est).unwrap();
 }
+
+/// A run with quarantined loop closures replays bit for bit (the quarantine is in the metadata
+/// and every step), its `/so2lin/step` messages carry `quarantined`, and the last `/graph`
+/// draws each quarantined edge in its own line list (the fourth), by its input index.
+#[test]
+fn quarantined_edges_are_recorded_replayed_and_drawn() {
+    use so2lin::sim::{OutlierConfig, OutlierKind, inject_outliers};
+    let w = simulate(&SimConfig::new(400, 21)).unwrap();
+    let bad = inject_outliers(
+        &w.graph,
+        &OutlierConfig {
+            count: 10,
+            kind: OutlierKind::Random,
+            seed: 3,
+        },
+    )
+    .unwrap();
+    let edges = bad.graph.edges();
+    let (bytes, _) = record(edges, LogOptions::default());
+    let log = read_log(&bytes).unwrap();
+    assert_eq!(
+        log.metadata.get("quarantine").map(String::as_str),
+        Some("true")
+    );
+    let r = replay(&log, true).unwrap();
+    assert!(r.divergence.is_none(), "{:?}", r.divergence);
+    let mut est = r.estimator;
+    let rejected: Vec<usize> = est.rejected().iter().map(|x| x.edge).collect();
+    assert!(!rejected.is_empty(), "nothing quarantined");
+    let in_steps: Vec<u64> = log
+        .steps
+        .iter()
+        .filter_map(|s| s["quarantined"][0]["edge"].as_u64())
+        .collect();
+    assert!(rejected.iter().all(|&e| in_steps.contains(&(e as u64))));
+    // The final /graph: the fourth line list holds both ends of every quarantined edge.
+    let mut last_graph = None;
+    for m in mcap::MessageStream::new(&bytes).unwrap() {
+        let m = m.unwrap();
+        if m.channel.topic == "/graph" {
+            last_graph = Some(serde_json::from_slice::<serde_json::Value>(&m.data).unwrap());
+        }
+    }
+    let g = last_graph.expect("a /graph snapshot");
+    let lines = &g["entities"][0]["lines"];
+    assert_eq!(
+        lines[3]["points"].as_array().map(Vec::len),
+        Some(2 * rejected.len())
+    );
+    let poses = est.poses().unwrap();
+    let first = &lines[3]["points"][0];
+    let a = est.graph().node_index(edges[rejected[0]].from()).unwrap();
+    assert!((first["x"].as_f64().unwrap() - poses[a].x).abs() < 1e-3);
+}

@@ -16,8 +16,16 @@ use so2lin::sim::{SimConfig, simulate};
 /// Stream `edges`, finish, and compare with the batch pipeline on `graph` (same edges, same
 /// order, every cycle at the same level: the online α-spending levels when family-wise):
 /// identical wraps of the best hypothesis, orientations equal to 1e-9 (both anchored at
-/// the batch graph's first node). Returns (online determined, batch determined).
-fn compare(name: &str, graph: &PoseGraph, edges: &[Edge], cfg: ScreeningConfig) -> (usize, usize) {
+/// the batch graph's first node). Returns (online determined, batch determined), or `None` when
+/// the online estimator quarantined a loop closure (quarantine is on, as by default: on clean
+/// data a genuine edge is quarantined with probability ≤ α, and the two paths then have
+/// different bases; callers bound how often).
+fn compare(
+    name: &str,
+    graph: &PoseGraph,
+    edges: &[Edge],
+    cfg: ScreeningConfig,
+) -> Option<(usize, usize)> {
     let batch = screen_spending(
         graph,
         &BatchConfig {
@@ -26,9 +34,17 @@ fn compare(name: &str, graph: &PoseGraph, edges: &[Edge], cfg: ScreeningConfig) 
         },
     )
     .unwrap();
-    let mut est = OnlineEstimator::new(OnlineConfig { screening: cfg }).unwrap();
+    let mut est = OnlineEstimator::new(OnlineConfig {
+        screening: cfg,
+        ..OnlineConfig::default()
+    })
+    .unwrap();
     for e in edges {
         est.add_edge(*e).unwrap();
+    }
+    if est.counters().quarantined + est.counters().readmitted > 0 {
+        println!("{name}: quarantined {:?}", est.rejected());
+        return None;
     }
     let online = est.finish().unwrap();
     assert_eq!(
@@ -62,7 +78,7 @@ fn compare(name: &str, graph: &PoseGraph, edges: &[Edge], cfg: ScreeningConfig) 
             to[w] - shift
         );
     }
-    (online.determined, batch.determined)
+    Some((online.determined, batch.determined))
 }
 
 #[test]
@@ -91,7 +107,17 @@ fn datasets_stream_to_the_batch_answer() {
             graph.edges(),
             "{name}: streaming and whole-file reads agree"
         );
-        let (on, ba) = compare(&name, &graph, &edges, ScreeningConfig::default());
+        // No loop closure of a clean dataset is quarantined (tests/statistics.rs), except on
+        // manhattan.g2o, whose declared angle information is too tight for its measurements
+        // (χ²/ℓ = 1.59): there the quarantine is right and the bases differ.
+        let Some((on, ba)) = compare(&name, &graph, &edges, ScreeningConfig::default()) else {
+            assert_eq!(
+                name, "manhattan.g2o",
+                "{name}: a loop closure was quarantined"
+            );
+            compared += 1;
+            continue;
+        };
         // The online path tests each cycle once conditioned on every earlier determination
         // (and re-tests ambiguous ones as determinations arrive), the batch path tests all
         // cycles unconditionally at its first iteration: the sets may differ by a few cycles
@@ -105,20 +131,29 @@ fn datasets_stream_to_the_batch_answer() {
 /// σ_θ up to 0.2 rad; above, see `extreme_noise_paths_may_differ_and_online_is_not_worse`.
 #[test]
 fn simulated_worlds_stream_to_the_batch_answer() {
-    let mut differ = 0;
+    let (mut differ, mut quarantined) = (0, 0);
     for seed in 0..120u64 {
         let mut c = SimConfig::new(200 + (seed as usize * 37) % 1300, seed);
         c.sigma_theta = [0.01, 0.05, 0.1, 0.15, 0.2][seed as usize % 5];
         let w = simulate(&c).unwrap();
-        let (on, ba) = compare(
+        match compare(
             &format!("seed {seed}"),
             &w.graph,
             w.graph.edges(),
             ScreeningConfig::default(),
-        );
-        differ += usize::from(on != ba);
+        ) {
+            Some((on, ba)) => differ += usize::from(on != ba),
+            None => quarantined += 1,
+        }
     }
-    println!("determined sets of different size in {differ} of 120 worlds");
+    println!(
+        "determined sets of different size in {differ} of 120 worlds; {quarantined} worlds with a quarantined loop closure"
+    );
+    // Family-wise at α = 0.01 per world: 4 of 120 would be a 1-in-30 event at rate α.
+    assert!(
+        quarantined <= 4,
+        "{quarantined} clean worlds quarantined an edge"
+    );
 }
 
 /// Why the two paths can end differently at extreme noise. Both make irrevocable per-cycle
@@ -136,7 +171,13 @@ fn extreme_noise_paths_may_differ_and_online_is_not_worse() {
         c.sigma_theta = 0.3;
         let w = simulate(&c).unwrap();
         let batch = screen_spending(&w.graph, &BatchConfig::default()).unwrap();
-        let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+        // The screening paths compared: quarantine off (at σ_θ = 0.3 rad the translation
+        // closure of long cycles is far from Gaussian, and a quarantined edge changes the basis).
+        let mut est = OnlineEstimator::new(OnlineConfig {
+            quarantine: false,
+            ..OnlineConfig::default()
+        })
+        .unwrap();
         for e in w.graph.edges() {
             est.add_edge(*e).unwrap();
         }
@@ -164,14 +205,37 @@ fn paper_preset_and_family_wise_also_agree() {
         ..SimConfig::new(1500, 77)
     })
     .unwrap();
-    compare("paper", &w.graph, w.graph.edges(), ScreeningConfig::paper());
+    // The paper's per-cycle level quarantines ~α·ℓ genuine edges: compared without quarantine.
+    let paper = ScreeningConfig::paper();
+    let batch = screen_spending(
+        &w.graph,
+        &BatchConfig {
+            basis: BasisKind::Incremental,
+            screening: paper,
+        },
+    )
+    .unwrap();
+    let mut est = OnlineEstimator::new(OnlineConfig {
+        screening: paper,
+        quarantine: false,
+    })
+    .unwrap();
+    for e in w.graph.edges() {
+        est.add_edge(*e).unwrap();
+    }
+    let online = est.finish().unwrap();
+    assert_eq!(
+        batch.wraps(&batch.hypotheses[0]).unwrap(),
+        online.wraps(&online.hypotheses[0]).unwrap()
+    );
     // Family-wise: both sides at the online α-spending levels (see `compare`).
     compare(
         "family-wise",
         &w.graph,
         w.graph.edges(),
         ScreeningConfig::default(),
-    );
+    )
+    .expect("nothing quarantined");
 }
 
 /// The batch default (Bonferroni over the known ℓ) and the online default (α-spending) are
@@ -292,7 +356,13 @@ fn odometry_extends_the_cached_estimate_exactly() {
 
 #[test]
 fn components_join_and_unknown_nodes_are_created() {
-    let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+    // The translations below do not close around the loop (only the angles do): without
+    // quarantine, so that the loop closure is added whatever its translation.
+    let mut est = OnlineEstimator::new(OnlineConfig {
+        quarantine: false,
+        ..OnlineConfig::default()
+    })
+    .unwrap();
     let z = |t: f64| Pose2::new(1.0, 0.0, t);
     // Two separate chains with sparse ids, then a bridge, then a loop.
     est.add_measurement(1000, 7, z(0.5), 0.1, 0.01).unwrap();

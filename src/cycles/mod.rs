@@ -358,21 +358,37 @@ impl IncrementalBasis {
     /// created as needed; `a ≠ b` is the caller's contract (edges are validated).
     pub fn add_edge(&mut self, a: usize, b: usize, sigma2: f64) -> Option<Cycle> {
         self.reserve_nodes(a.max(b) + 1);
+        let cycle = self.probe(a, b);
+        self.commit(a, b, sigma2, cycle.is_some());
+        cycle
+    }
+
+    /// The cycle edge `a → b` would close if it were added now (its chord numbered as the next
+    /// edge), without adding it; `None` if it would be a tree edge. The online estimator tests
+    /// a loop closure with it before deciding to add it ([`Self::commit`]) or to quarantine it.
+    pub fn probe(&mut self, a: usize, b: usize) -> Option<Cycle> {
+        if a.max(b) >= self.adj.len() || !self.connected(a, b) {
+            return None;
+        }
+        let mut terms = SmallVec::new();
+        terms.push(SignedEdge {
+            edge: self.ends.len() as u32,
+            sign: 1,
+        });
+        self.shortest_path(b, a, &mut terms);
+        Some(Cycle { terms })
+    }
+
+    /// Add edge `a → b` whose cycle (`closes`) or tree status was found by [`Self::probe`].
+    pub fn commit(&mut self, a: usize, b: usize, sigma2: f64, closes: bool) {
+        self.reserve_nodes(a.max(b) + 1);
         let e = self.ends.len() as u32;
-        let cycle = if self.components.union(a, b) {
-            None
-        } else {
-            let mut terms = SmallVec::new();
-            terms.push(SignedEdge { edge: e, sign: 1 });
-            self.shortest_path(b, a, &mut terms);
-            self.cycles += 1;
-            Some(Cycle { terms })
-        };
+        self.components.union(a, b);
+        self.cycles += usize::from(closes);
         self.ends.push((a as u32, b as u32));
         self.sigma2.push(sigma2);
         self.adj[a].push((b as u32, e));
         self.adj[b].push((a as u32, e));
-        cycle
     }
 
     /// Append the least-σ² path `src → … → dst` (signed edges in traversal order) to `out`.

@@ -167,21 +167,24 @@ pub(super) enum Style {
     LoopClosure = 1,
     /// Chord of an ambiguous or inconsistent cycle (red, thick).
     Flagged = 2,
+    /// Quarantined loop closure (orange, thin, half transparent): not in the estimate.
+    Rejected = 3,
 }
 
 impl<'a> SceneUpdate<'a> {
     /// The graph in frame `map`: `segments[s]` holds the endpoint pairs drawn in style `s`.
     pub(super) fn graph(
         time_ns: u64,
-        segments: &'a [Vec<(usize, usize)>; 3],
+        segments: &'a [Vec<(usize, usize)>; 4],
         pos: &'a [(f64, f64)],
     ) -> Self {
-        const COLORS: [(f64, f64, f64, f64); 3] = [
+        const COLORS: [(f64, f64, f64, f64); 4] = [
             (0.6, 0.6, 0.6, 1.0),
             (0.2, 0.4, 1.0, 0.8),
             (1.0, 0.1, 0.1, 1.0),
+            (1.0, 0.6, 0.0, 0.5),
         ];
-        const THICKNESS: [f64; 3] = [0.05, 0.03, 0.12];
+        const THICKNESS: [f64; 4] = [0.05, 0.03, 0.12, 0.02];
         let lines = segments
             .iter()
             .enumerate()
@@ -283,7 +286,7 @@ mod tests {
     #[test]
     fn scene_lines_hold_both_endpoints_of_every_segment() {
         let pos = [(0.0, 0.0), (1.0, 0.0), (1.0, 2.0)];
-        let segs = [vec![(0, 1), (1, 2)], vec![(2, 0)], vec![]];
+        let segs = [vec![(0, 1), (1, 2)], vec![(2, 0)], vec![], vec![(0, 2)]];
         let v = serde_json::to_value(SceneUpdate::graph(7_250_000_000, &segs, &pos))
             .expect("serialisable");
         let lines = &v["entities"][0]["lines"];
@@ -291,6 +294,9 @@ mod tests {
         assert_eq!(lines[1]["points"][0]["x"], 1.0);
         assert_eq!(lines[1]["points"][0]["y"], 2.0);
         assert_eq!(lines[2]["points"].as_array().map(Vec::len), Some(0));
+        // Quarantined loop closures: their own list, thinner than the others.
+        assert_eq!(lines[3]["points"].as_array().map(Vec::len), Some(2));
+        assert!(lines[3]["thickness"].as_f64() < lines[1]["thickness"].as_f64());
         assert_eq!(v["entities"][0]["timestamp"]["sec"], 7);
         assert_eq!(v["entities"][0]["timestamp"]["nsec"], 250_000_000);
         assert_eq!(v["entities"][0]["arrows"], serde_json::json!([]));

@@ -80,7 +80,8 @@ pub struct Backpressure {
 enum Record {
     Step {
         edge: Edge,
-        step: Step,
+        /// Boxed: a step with its lists is much larger than the other records.
+        step: Box<Step>,
         latency_ns: u64,
         time_ns: u64,
         newest: Option<Pose2>,
@@ -98,7 +99,10 @@ enum Record {
 /// ambiguous cycles; the writer serialises it with its replica of the graph.
 struct Snapshot {
     poses: Vec<Pose2>,
+    /// Input indices of the chords of the ambiguous cycles, ascending.
     flagged: Vec<usize>,
+    /// Input indices of the quarantined loop closures, ascending.
+    rejected: Vec<usize>,
 }
 
 impl Snapshot {
@@ -106,12 +110,13 @@ impl Snapshot {
         let mut flagged: Vec<usize> = est
             .ambiguous()
             .iter()
-            .map(|&c| est.cycles()[c].chord() as usize)
+            .filter_map(|&c| est.input_index(est.cycles()[c].chord() as usize))
             .collect();
         flagged.sort_unstable();
         Ok(Self {
             poses: est.poses()?,
             flagged,
+            rejected: est.rejected().iter().map(|r| r.edge).collect(),
         })
     }
 }
@@ -126,13 +131,16 @@ fn encode(
     graph: &PoseGraph,
     poses: &[Pose2],
     flagged: &[usize],
+    rejected: &[usize],
 ) -> Result<Encoded, LogError> {
     let theta: Vec<f64> = poses.iter().map(|p| p.theta).collect();
     let pos: Vec<(f64, f64)> = poses.iter().map(|p| (p.x, p.y)).collect();
     let nodes: Vec<u64> = graph.nodes().iter().map(|n| n.id).collect();
-    let mut segments: [Vec<(usize, usize)>; 3] = Default::default();
+    let mut segments: [Vec<(usize, usize)>; 4] = Default::default();
     for (e, (&ends, edge)) in graph.endpoints().iter().zip(graph.edges()).enumerate() {
-        let style = if flagged.binary_search(&e).is_ok() {
+        let style = if rejected.binary_search(&e).is_ok() {
+            Style::Rejected
+        } else if flagged.binary_search(&e).is_ok() {
             Style::Flagged
         } else if edge.is_odometric() {
             Style::Odometry
@@ -227,6 +235,7 @@ impl Recorder {
             ("dof", s.dof.to_string()),
             ("family_wise", s.family_wise.to_string()),
             ("max_hypotheses", s.max_hypotheses.to_string()),
+            ("quarantine", config.quarantine.to_string()),
         ]
         .into_iter()
         .map(|(k, v)| (k.to_owned(), v))
@@ -344,7 +353,7 @@ impl Recorder {
         let newest = est.newest().ok().flatten().map(|(_, p)| p);
         let record = Record::Step {
             edge: *edge,
-            step: step.clone(),
+            step: Box::new(step.clone()),
             latency_ns,
             time_ns,
             newest,
@@ -437,7 +446,8 @@ const POSE: usize = 6;
 /// The writer thread's state.
 struct Writer {
     mcap: mcap::Writer<Box<dyn Sink>>,
-    /// The recorded edges, as the estimator holds them (same order, same dense indices).
+    /// The recorded edges in input order (quarantined ones included; the same dense node
+    /// indices as the estimator's graph, since a quarantined loop closure creates no node).
     graph: PoseGraph,
     channels: [u16; 7],
     options: LogOptions,
@@ -600,6 +610,18 @@ impl Writer {
                 Decision::Determined => {}
             }
         }
+        for r in &step.quarantined {
+            self.log_line(
+                3,
+                &format!(
+                    "edge {} ({}→{}) quarantined: {} statistic {:.3} above {:.3}",
+                    r.edge, r.from, r.to, r.test, r.statistic, r.threshold
+                ),
+            )?;
+        }
+        for &e in &step.readmitted {
+            self.log_line(2, &format!("edge {e} re-admitted from quarantine"))?;
+        }
         for r in step.rescreened.iter().filter(|r| r.changed) {
             self.log_line(
                 2,
@@ -621,8 +643,15 @@ impl Writer {
                 "snapshot not written: it does not match the recorded graph",
             );
         }
-        let [estimate, graph, poses] =
-            encode(self.steps, self.time_ns, &self.graph, &s.poses, &s.flagged)?.0;
+        let [estimate, graph, poses] = encode(
+            self.steps,
+            self.time_ns,
+            &self.graph,
+            &s.poses,
+            &s.flagged,
+            &s.rejected,
+        )?
+        .0;
         self.write(ESTIMATE, &estimate)?;
         self.write(GRAPH, &graph)?;
         self.write(POSES, &poses)

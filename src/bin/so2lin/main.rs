@@ -326,6 +326,10 @@ enum Command {
         /// Information-matrix order of edge lines (default: detect).
         #[arg(long, value_enum, default_value = "auto")]
         info_order: OrderArg,
+        /// Add every edge, even a loop closure whose cycle fails its angle or translation test
+        /// (by default it is quarantined: kept out of the estimate, listed, re-tested later).
+        #[arg(long)]
+        no_quarantine: bool,
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
@@ -464,11 +468,13 @@ fn main() -> ExitCode {
             order,
             estimate,
             info_order,
+            no_quarantine,
             json,
         } => {
             let step_time_ok = step_time.is_finite() && (0.0..1e6).contains(&step_time);
             let config = OnlineConfig {
                 screening: screening.config(),
+                quarantine: !no_quarantine,
             };
             if !step_time_ok {
                 Err(format!(
@@ -683,6 +689,40 @@ pub(crate) fn skipped_lines(summary: &ReadSummary) -> Option<String> {
 }
 
 /// "1 hypothesis", "3 hypotheses".
+/// Print rejected edges (at most ten, then a count): one line naming how many and `what`
+/// happened to them, then `edge i (from → to): test statistic > threshold`. Nothing when empty.
+pub(crate) fn print_rejected(rejected: &[so2lin::batch::RejectedEdge], what: &str) {
+    if rejected.is_empty() {
+        return;
+    }
+    println!(
+        "{} {what}:",
+        plural(rejected.len(), "loop closure", "loop closures")
+    );
+    for r in rejected.iter().take(10) {
+        println!(
+            "  edge {} ({} → {}): {} {:.2} > {:.2}",
+            r.edge, r.from, r.to, r.test, r.statistic, r.threshold
+        );
+    }
+    if rejected.len() > 10 {
+        println!("  … {} more (--json lists all)", rejected.len() - 10);
+    }
+}
+
+/// What a success bound or p-value is stated for: "all N edges accepted, none rejected", or
+/// "the N accepted edges; R rejected edges left out".
+pub(crate) fn accepted_words(accepted: usize, rejected: usize) -> String {
+    if rejected == 0 {
+        format!("all {accepted} edges accepted, none rejected")
+    } else {
+        format!(
+            "for the {accepted} accepted edges; {} left out",
+            plural(rejected, "rejected edge", "rejected edges")
+        )
+    }
+}
+
 pub(crate) fn plural(n: usize, one: &str, many: &str) -> String {
     format!("{n} {}", if n == 1 { one } else { many })
 }

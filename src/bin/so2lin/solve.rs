@@ -207,15 +207,7 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
                     "robust kernel (DCS on loop closures): {n} rejected (SE(2) χ²_e above the family-wise threshold Φ = {:.1}, α = {}); the refined cost is over the other edges, and the screening's success bound and p-values were computed with these edges included",
                     best.rejected[0].threshold, rc.alpha
                 );
-                for r in best.rejected.iter().take(10) {
-                    println!(
-                        "  edge {} ({} → {}): χ² = {:.1}",
-                        r.edge, r.from, r.to, r.statistic
-                    );
-                }
-                if n > 10 {
-                    println!("  … {} more (--json lists all)", n - 10);
-                }
+                crate::print_rejected(&best.rejected, "rejected");
             }
         }
     }

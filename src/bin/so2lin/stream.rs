@@ -8,7 +8,7 @@ use serde_json::{Value, json};
 use so2lin::estimate::OrientationEstimator;
 use so2lin::io::InfoOrder;
 use so2lin::log::{LogOptions, Recorder};
-use so2lin::online::{OnlineConfig, OnlineEstimator, StepKind, robot_order};
+use so2lin::online::{OnlineConfig, OnlineEstimator, StepKind, robot_order_indices};
 
 /// In which order the edges reach the estimator.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
@@ -95,10 +95,12 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     let (graph, _) = crate::load(args.file, args.info_order)?;
     let edges = graph.edges().to_vec();
     drop(graph);
-    let edges = match args.edge_order {
-        EdgeOrder::Robot => robot_order(&edges),
-        EdgeOrder::File => edges,
+    // File index of the k-th edge streamed (rejected edges are reported in file order).
+    let file_index: Vec<usize> = match args.edge_order {
+        EdgeOrder::Robot => robot_order_indices(&edges),
+        EdgeOrder::File => (0..edges.len()).collect(),
     };
+    let edges: Vec<_> = file_index.iter().map(|&i| edges[i]).collect();
     let mut recorder = match args.log {
         Some(path) => {
             let source = args.file.display().to_string();
@@ -138,7 +140,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         all.push(ns);
         match step.kind {
             StepKind::Tree { .. } => tree.push(ns),
-            StepKind::Cycle(_) => cyc.push(ns),
+            StepKind::Cycle(_) | StepKind::Quarantined => cyc.push(ns),
         }
         if all.len() % 1024 == 0 {
             bar.set_position(all.len() as u64 * 64);
@@ -172,6 +174,14 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         crate::screen::write_orientations(path, est.graph(), &theta)?;
     }
     let c = est.counters();
+    let rejected: Vec<_> = est
+        .rejected()
+        .into_iter()
+        .map(|mut r| {
+            r.edge = file_index[r.edge];
+            r
+        })
+        .collect();
     let steps_s = all.iter().sum::<u64>() as f64 / 1e9;
     let lat = [
         ("all", Latency::of(all)),
@@ -196,6 +206,9 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "determined": c.determined,
             "ambiguous": c.ambiguous,
             "inconsistent": c.inconsistent,
+            "quarantined": c.quarantined,
+            "readmitted": c.readmitted,
+            "rejected_edges": rejected,
             "rescreens": c.rescreens,
             "reorders": c.reorders,
             "latency_us": latency,
@@ -265,9 +278,17 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     for (k, h) in result.hypotheses.iter().take(10).enumerate() {
         println!("  #{:<3} χ² = {:<12.4} p = {:.4}", k + 1, h.chi2, h.p_value);
     }
+    crate::print_rejected(&rejected, "quarantined (kept out of the estimate)");
+    if c.readmitted > 0 {
+        println!(
+            "{} re-admitted after a later re-test",
+            crate::plural(c.readmitted, "loop closure", "loop closures")
+        );
+    }
     println!(
-        "success probability ≥ {:.6} (integer bootstrapping; assumes the declared noise and all {} edges accepted, none rejected)",
-        result.success_lower_bound, c.steps
+        "success probability ≥ {:.6} (integer bootstrapping; assumes the declared noise; {})",
+        result.success_lower_bound,
+        crate::accepted_words(c.steps, rejected.len())
     );
     let rss = rss.map_or("n/a".to_owned(), |b| format!("{:.1} MB", b as f64 / 1e6));
     println!(
