@@ -106,6 +106,7 @@ impl Worker {
             let spawned = std::thread::Builder::new()
                 .name(name.into())
                 .spawn(move || {
+                    lower_priority();
                     for job in rx {
                         job();
                     }
@@ -128,6 +129,18 @@ impl Worker {
     /// Free `value` on the worker thread (here if there is none).
     pub fn retire<T: Send + 'static>(&mut self, name: &str, value: T) {
         self.run(name, Box::new(move || drop(value)));
+    }
+}
+
+/// Lower the calling thread's scheduling priority (nice 10 on Linux, where priorities are per
+/// thread): a renewal's builder must not take the core the robot's steps run on when the cores
+/// are few (a step preempted by a builder was the worst step on two cores). Elsewhere nothing.
+fn lower_priority() {
+    #[cfg(target_os = "linux")]
+    // SAFETY: setpriority with who = 0 changes only the calling thread's nice value; it reads
+    // no memory of ours. A refusal (no permission) leaves the priority as it was.
+    unsafe {
+        libc::setpriority(libc::PRIO_PROCESS, 0, 10);
     }
 }
 
