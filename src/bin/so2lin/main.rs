@@ -153,7 +153,8 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Simulate a Manhattan world; writes FILE.g2o and its ground truth FILE.truth.json.
+    /// Simulate a Manhattan world; writes the graph to OUT (g2o) and its ground truth beside it
+    /// (OUT with the extension `.truth.json`: `w.g2o` gives `w.truth.json`).
     Simulate {
         /// Number of poses.
         #[arg(long, default_value_t = 3500)]
