@@ -101,11 +101,14 @@ impl Estimate {
                     self.positions.add_edge(a as usize, b as usize, w, t);
                 }
                 Op::Step => {
-                    self.heads.after_step(|| None);
+                    // One builder at a time (heads first).
+                    let free = !self.positions.renewing();
+                    self.heads.after_step(free, || None);
                     // A renewal of the position factor takes every position row at the
                     // current headings.
+                    let free = !self.heads.renewing();
                     let (heads, edges) = (&mut self.heads, self.positions.edge_count());
-                    self.positions.after_step(|| {
+                    self.positions.after_step(free, || {
                         // The headings here (one back-substitution); the rows on the builder.
                         let theta = heads.all(0);
                         let tails: Vec<(usize, Pose2)> = graph

@@ -406,18 +406,29 @@ impl<const K: usize> Laplacian<K> {
         self.factor.marginal(&[(v, 1.0), (a, -1.0)])
     }
 
+    /// Whether a renewal is in progress.
+    pub fn renewing(&self) -> bool {
+        self.renewal.is_some()
+    }
+
     /// Called once per step, after its events: starts or completes a renewal. A renewal's
     /// snapshot takes the right-hand sides computed by the job `relinearise` gives (None: the
     /// current ones), run on the builder's thread; they become the live ones when the renewal
     /// is swapped in.
-    pub fn after_step(&mut self, relinearise: impl FnOnce() -> Option<Relinearise<K>>) {
+    /// A renewal starts only when `may_start` (the owner keeps two factors' builders from
+    /// running at once: on two cores they would contend for the one the steps do not use).
+    pub fn after_step(
+        &mut self,
+        may_start: bool,
+        relinearise: impl FnOnce() -> Option<Relinearise<K>>,
+    ) {
         self.steps += 1;
         if self.renewal.is_some() {
             self.complete_renewal();
             return;
         }
         let n = self.len();
-        if n < MIN_VARIABLES {
+        if n < MIN_VARIABLES || !may_start {
             return;
         }
         // Nodes appended since the last renewal form a chain at the end of the order that
