@@ -85,7 +85,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let c = est.counters();
             let truth = world.truth.poses[latest as usize].theta;
             println!(
-                "pose {:>6}: {:>5} loops, {:>5} determined, {:>3} ambiguous | heading {:+.3} rad (truth {:+.3}, error {:+.3}) | P(right) ≥ {:.4} (if the noise is as declared) | worst step {:.0} µs",
+                "pose {:>6}: {:>5} loops, {:>5} determined, {:>3} ambiguous | heading {:+.3} rad (truth {:+.3}, error {:+.3}) | P(right) ≥ {:.4} (declared noise; the {} accepted edges, {} quarantined) | worst step {:.0} µs",
                 latest,
                 c.cycles,
                 c.determined,
@@ -94,6 +94,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 truth,
                 wrap_angle(heading - truth),
                 est.success_probability_lower_bound(),
+                c.steps,
+                c.quarantined,
                 worst_us
             );
             worst_us = 0.0;

@@ -466,7 +466,7 @@ impl OnlineEstimator {
             _ => self.add_tree_edge(input, edge)?,
         };
         self.arrivals += 1;
-        self.retest_due(&mut step)?;
+        self.retest_due(&mut step);
         self.refresh_counters();
         Ok(step)
     }
@@ -586,7 +586,6 @@ impl OnlineEstimator {
         } else {
             self.ambiguous.insert(t, m);
         }
-        self.refresh_counters();
         // The new chord's row with its wrap, then the right-hand sides of the chords whose wrap
         // moved with the re-screened cycles.
         let changed =
@@ -627,7 +626,7 @@ impl OnlineEstimator {
     /// Re-test the quarantined loop closures whose time has come (module docs: re-admission),
     /// through the path a new loop closure takes, at the per-cycle level α. Re-admitted edges
     /// and the cycles their determination re-screened are added to `step`.
-    fn retest_due(&mut self, step: &mut Step) -> Result<(), OnlineError> {
+    fn retest_due(&mut self, step: &mut Step) {
         while let Some(&(due, input)) = self.due.first() {
             if due > self.counters.cycles {
                 break;
@@ -643,7 +642,12 @@ impl OnlineEstimator {
                 continue;
             };
             let level = self.config.screening.alpha;
-            match self.add_chord(input, held.edge, a, b, level)? {
+            // A re-test that fails internally leaves the edge in quarantine: this step's own
+            // edge is already in, and nothing of the held edge's is lost.
+            let retest = self
+                .add_chord(input, held.edge, a, b, level)
+                .unwrap_or(Err(held.rejected));
+            match retest {
                 Ok(s) => {
                     self.counters.readmitted += 1;
                     step.readmitted.push(input);
@@ -668,7 +672,6 @@ impl OnlineEstimator {
                 }
             }
         }
-        Ok(())
     }
 
     /// `δ_e − 2π k_e`: the unwrapped measurement of edge e.
@@ -692,10 +695,10 @@ impl OnlineEstimator {
         self.estimate.push(Op::Step);
     }
 
-    /// End of a step: the factors' renewals advance, counters refresh.
+    /// End of a step: the P_UU factor's renewal advances (the counters are refreshed once,
+    /// at the end of [`Self::add_edge`]).
     fn after_step(&mut self) {
         self.advance_reorder();
-        self.refresh_counters();
     }
 
     /// The current best γ of cycle i: its determined value, or the rounded conditional mean

@@ -937,8 +937,9 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
         );
     }
     println!(
-        "  success probability ≥ {:.6} (integer bootstrapping, if the noise is as declared)",
-        r.success_lower_bound
+        "  success probability ≥ {:.6} (integer bootstrapping; assumes the declared noise and all {} edges accepted, none rejected)",
+        r.success_lower_bound,
+        world.graph.edge_count()
     );
     if let Some(e) = est {
         let err: Vec<f64> = world
