@@ -221,7 +221,7 @@ pub fn solve(
     let theta = orient.orientations(&wraps);
     let chi2_orientation = orient.cost(&theta, &wraps);
     let linear = orient.poses(graph, &theta)?;
-    let cost_linear = crate::refine::cost(graph, &linear);
+    let cost_linear = refine.residual.cost(graph, &linear);
     let refined = crate::refine::refine(graph, &linear, refine)?;
     Ok(Solution {
         wraps,
@@ -338,7 +338,7 @@ pub fn solve_robust(
     }
     let refined = crate::refine::refine(&g, &x, refine)?;
     let (chi2_orientation, linear) = first.unwrap_or_default();
-    let cost_linear = crate::refine::cost(graph, &linear);
+    let cost_linear = refine.residual.cost(graph, &linear);
     Ok(Solution {
         wraps: wraps_of(
             graph,
@@ -515,7 +515,7 @@ fn robust_pass(
     let mut x = crate::refine::refine(&g_w, &linear, &inner)?.poses;
     let mut w2 = vec![f64::NAN; edges.len()];
     for _ in 0..robust.rounds {
-        let chi2: Vec<f64> = crate::refine::edge_costs(graph, &x).collect();
+        let chi2: Vec<f64> = refine.residual.edge_costs(graph, &x).collect();
         let next = weights_of(&|e| chi2[e], phi_3);
         if settled(&next, &w2) {
             break;
@@ -523,7 +523,7 @@ fn robust_pass(
         w2 = next;
         x = crate::refine::refine(&reweighted(graph, &w2)?, &x, &inner)?.poses;
     }
-    let chi2: Vec<f64> = crate::refine::edge_costs(graph, &x).collect();
+    let chi2: Vec<f64> = refine.residual.edge_costs(graph, &x).collect();
     let mut rejected: Vec<(usize, f64)> = (0..edges.len())
         .filter(|&e| loop_closure[e] && chi2[e] > phi_3)
         .map(|e| (e, chi2[e]))
@@ -537,7 +537,7 @@ fn robust_pass(
         } else {
             w2
         };
-        let with = crate::refine::cost(&reweighted(graph, &w_all)?, &x);
+        let with = refine.residual.cost(&reweighted(graph, &w_all)?, &x);
         let mut order: Vec<usize> = (0..edges.len()).filter(|&e| loop_closure[e]).collect();
         order.sort_by(|&a, &b| chi2[b].total_cmp(&chi2[a]).then(a.cmp(&b)));
         for &e in order.iter().take(LEAVE_ONE_OUT) {

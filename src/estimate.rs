@@ -43,9 +43,68 @@ mod system;
 pub(crate) use system::{ANCHOR, Anchored, NormalEquations, solve};
 
 /// A linear system could not be built or factored.
-#[derive(Clone, Debug, PartialEq, thiserror::Error)]
-#[error("linear system: {0}")]
-pub struct EstimateError(pub String);
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum EstimateError {
+    /// An argument has the wrong length for the graph or system it is used with.
+    #[error("linear system: {what}: expected {expected}, got {got}")]
+    Size {
+        /// What was counted (e.g. "initial poses for the graph's nodes").
+        what: &'static str,
+        /// The count the graph or system has.
+        expected: usize,
+        /// The count given.
+        got: usize,
+    },
+    /// The sparse Cholesky factorisation met a non-positive pivot: the normal equations are
+    /// not positive definite in double precision.
+    #[error(
+        "linear system: the normal equations ({unknowns} unknowns) are not positive definite \
+         (pivot {pivot} in the solver's fill-reducing order): an edge's information is \
+         degenerate, or the information spans more than double precision can factor"
+    )]
+    NotPositiveDefinite {
+        /// Number of unknowns of the system.
+        unknowns: usize,
+        /// The failing pivot, in the factorisation's (permuted) order.
+        pivot: usize,
+    },
+    /// The factorisation could not allocate or index its system.
+    #[error(
+        "linear system: the sparse factorisation of {unknowns} unknowns ran out of memory or index range"
+    )]
+    Resources {
+        /// Number of unknowns of the system.
+        unknowns: usize,
+    },
+}
+
+impl EstimateError {
+    /// `Err(Size)` unless `got == expected`.
+    pub(crate) fn check_size(what: &'static str, expected: usize, got: usize) -> Result<(), Self> {
+        if got == expected {
+            Ok(())
+        } else {
+            Err(Self::Size {
+                what,
+                expected,
+                got,
+            })
+        }
+    }
+
+    /// The typed error of a failed sparse Cholesky of `unknowns` unknowns.
+    pub(crate) fn from_llt(unknowns: usize, e: faer::sparse::linalg::LltError) -> Self {
+        match e {
+            faer::sparse::linalg::LltError::Numeric(
+                faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot { index },
+            ) => Self::NotPositiveDefinite {
+                unknowns,
+                pivot: index,
+            },
+            faer::sparse::linalg::LltError::Generic(_) => Self::Resources { unknowns },
+        }
+    }
+}
 
 /// Factored orientation system of a graph.
 pub struct OrientationEstimator {
@@ -110,19 +169,21 @@ impl OrientationEstimator {
     /// least-squares [`positions`], reusing this system's ordering when the translation
     /// information is isotropic.
     pub fn poses(&self, graph: &PoseGraph, theta: &[f64]) -> Result<Vec<Pose2>, EstimateError> {
-        if graph.node_count() != self.anchored.var_of.len()
-            || graph.edge_count() != self.ends.len()
-            || theta.len() != graph.node_count()
-        {
-            return Err(EstimateError(format!(
-                "poses: the system has {} nodes and {} edges, the graph {} and {}, θ {} entries",
-                self.anchored.var_of.len(),
-                self.ends.len(),
-                graph.node_count(),
-                graph.edge_count(),
-                theta.len()
-            )));
-        }
+        EstimateError::check_size(
+            "poses: graph nodes for the system's nodes",
+            self.anchored.var_of.len(),
+            graph.node_count(),
+        )?;
+        EstimateError::check_size(
+            "poses: graph edges for the system's edges",
+            self.ends.len(),
+            graph.edge_count(),
+        )?;
+        EstimateError::check_size(
+            "poses: orientations for the graph's nodes",
+            graph.node_count(),
+            theta.len(),
+        )?;
         let pos = positions_with(graph, theta, &self.anchored, Some(&self.system))?;
         Ok(with_headings(pos, theta))
     }
@@ -250,6 +311,44 @@ pub fn odometry_poses(graph: &PoseGraph) -> Vec<Pose2> {
 mod tests {
     use super::*;
     use crate::sim::{SimConfig, simulate};
+
+    /// Failures are typed: a size mismatch names what was counted, and a system whose
+    /// information spans more than double precision can factor is `NotPositiveDefinite`,
+    /// not a solver's debug text.
+    #[test]
+    fn failures_are_typed() {
+        let w = simulate(&SimConfig::new(200, 4)).unwrap();
+        let est = OrientationEstimator::new(&w.graph).unwrap();
+        let err = est.poses(&w.graph, &[0.0; 3]).unwrap_err();
+        assert_eq!(
+            err,
+            EstimateError::Size {
+                what: "poses: orientations for the graph's nodes",
+                expected: w.graph.node_count(),
+                got: 3
+            }
+        );
+        let mut g = PoseGraph::new();
+        for (k, e) in w.graph.edges().iter().enumerate() {
+            let info = if k % 2 == 0 { 1e12 } else { 1e-12 };
+            let e = crate::graph::Edge::new(
+                e.from(),
+                e.to(),
+                e.measurement(),
+                crate::graph::Information::diagonal(1.0, 1.0, info),
+            )
+            .unwrap();
+            g.add_edge(e, crate::graph::NodePolicy::CreateUnknown)
+                .unwrap();
+        }
+        match OrientationEstimator::new(&g) {
+            Err(e @ EstimateError::NotPositiveDefinite { unknowns, .. }) => {
+                assert_eq!(unknowns, g.node_count() - 1);
+                assert!(!e.to_string().contains("NonPositivePivot"), "{e}");
+            }
+            other => panic!("{:?}", other.map(|_| ())),
+        }
+    }
 
     /// The isotropic shortcut and the general 2 × 2-block system agree: a graph made
     /// anisotropic by a negligible off-diagonal term takes the general path.

@@ -18,6 +18,7 @@ const CONVERGED: RefineConfig = RefineConfig {
     gradient_tolerance: 1e-9,
     step_tolerance: 1e-12,
     initial_damping: 1e-6,
+    residual: so2lin::refine::Residual::Log,
 };
 
 /// RMS position and heading error of `x` against the truth expressed in node 0's frame.

@@ -247,8 +247,11 @@ impl<const D: usize> NormalEquations<D> {
         let symbolic = match &self.symbolic {
             Some(s) => s.clone(),
             None => {
-                let s = SymbolicLlt::try_new(self.pattern.as_ref(), Side::Lower)
-                    .map_err(|e| EstimateError(format!("{e:?}")))?;
+                let s = SymbolicLlt::try_new(self.pattern.as_ref(), Side::Lower).map_err(|_| {
+                    EstimateError::Resources {
+                        unknowns: self.dim(),
+                    }
+                })?;
                 self.symbolic = Some(s.clone());
                 s
             }
@@ -256,7 +259,7 @@ impl<const D: usize> NormalEquations<D> {
         let h = SparseColMatRef::new(self.pattern.as_ref(), values);
         Llt::try_new_with_symbolic(symbolic, h, Side::Lower)
             .map(Some)
-            .map_err(|e| EstimateError(format!("{e:?}")))
+            .map_err(|e| EstimateError::from_llt(self.dim(), e))
     }
 
     /// `−g`, the right-hand side of the step equations.

@@ -42,6 +42,24 @@ impl From<OutlierKindArg> for OutlierKind {
     }
 }
 
+/// The chart of an edge's SE(2) error in the refinement (`--residual`).
+#[derive(Clone, Copy, ValueEnum)]
+enum ResidualArg {
+    /// The SE(2) logarithm: the geodesic error, as GTSAM's BetweenFactor<Pose2>.
+    Log,
+    /// g2o's EdgeSE2 error: translation and wrapped angle of Z⁻¹ X_i⁻¹ X_j (g2o's χ²).
+    T2v,
+}
+
+impl From<ResidualArg> for so2lin::refine::Residual {
+    fn from(r: ResidualArg) -> Self {
+        match r {
+            ResidualArg::Log => Self::Log,
+            ResidualArg::T2v => Self::T2v,
+        }
+    }
+}
+
 #[derive(Parser)]
 #[command(
     name = "so2lin",
@@ -233,6 +251,11 @@ enum Command {
         /// Converged once the gradient's largest entry (‖Σ JᵀΩe‖∞) is at most this.
         #[arg(long, default_value_t = so2lin::refine::RefineConfig::default().gradient_tolerance)]
         gradient_tolerance: f64,
+        /// The error each edge contributes to the refined cost: the SE(2) logarithm (geodesic,
+        /// GTSAM's) or g2o's t2v. They agree to first order; on strongly anisotropic
+        /// information their minima differ.
+        #[arg(long, value_enum, default_value_t = ResidualArg::Log)]
+        residual: ResidualArg,
         /// Solve every surviving hypothesis and rank them by refined cost.
         #[arg(long)]
         all_hypotheses: bool,
@@ -531,6 +554,7 @@ fn main() -> ExitCode {
             refine,
             tolerance,
             gradient_tolerance,
+            residual,
             all_hypotheses,
             no_robust,
             odometry,
@@ -551,6 +575,7 @@ fn main() -> ExitCode {
                     iterations: refine,
                     relative_decrease: tolerance,
                     gradient_tolerance,
+                    residual: residual.into(),
                     ..Default::default()
                 },
                 all_hypotheses,

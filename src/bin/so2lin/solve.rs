@@ -139,7 +139,7 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
                     "chi2_orientation": s.chi2_orientation,
                     "cost_linear": s.cost_linear,
                     "cost_refined": s.refined.cost(),
-                    "cost_refined_all_edges": so2lin::refine::cost(&graph, &s.refined.poses),
+                    "cost_refined_all_edges": args.refine.residual.cost(&graph, &s.refined.poses),
                     "rejected_edges": s.rejected,
                     "refine_costs": s.refined.costs,
                     "iterations": s.refined.iterations,
@@ -178,6 +178,14 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
         r.hypotheses.len(),
         1e3 * read_seconds,
         1e3 * solved.screen_seconds
+    );
+    println!(
+        "costs: Σ_e r_eᵀ Ω_e r_e with r_e the {} of Z⁻¹ X_i⁻¹ X_j",
+        match args.refine.residual {
+            so2lin::refine::Residual::Log =>
+                "SE(2) logarithm (GTSAM's error; --residual t2v for g2o's)",
+            so2lin::refine::Residual::T2v => "t2v (g2o's EdgeSE2 error, its χ²)",
+        }
     );
     println!(
         "{:>4} {:>14} {:>16} {:>16} {:>6} {:>9}  refinement",
