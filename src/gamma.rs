@@ -114,6 +114,18 @@ impl GammaModel {
         t
     }
 
+    /// A copy of μ and P_γ without the index from edges to cycles ([`push_cycle`]'s, which a
+    /// renewal's builder never uses): what a renewal of the P_UU factor starts from.
+    ///
+    /// [`push_cycle`]: Self::push_cycle
+    pub fn rows_only(&self) -> Self {
+        Self {
+            mu: self.mu.clone(),
+            rows: self.rows.clone(),
+            ..Self::default()
+        }
+    }
+
     /// Append cycle t from its μ_t and its row of P_γ as another model computed it
     /// ([`push_cycle`](Self::push_cycle)): the entries for cycles ≤ t, ascending, its variance
     /// last. Keeps a copy (a renewal's builder) in step with the live model; a copy grown this

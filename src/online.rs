@@ -339,8 +339,7 @@ fn retest_after(cycles: usize) -> usize {
 
 /// A renewal of the P_UU factor built beside the live one ([`OnlineEstimator::maybe_reorder`]).
 struct CondRenewal {
-    build: laplacian::Beside<Conditioner>,
-    tx: std::sync::mpsc::Sender<CondMsg>,
+    build: laplacian::Beside<Conditioner, CondMsg>,
     /// Cycles of the model sent to the builder.
     cycles_sent: usize,
     /// Determinations (positions in the live factor's order) sent to the builder.
@@ -353,8 +352,6 @@ enum CondMsg {
     Cycle(f64, Vec<(u32, f64)>),
     /// Cycle c determined with this value.
     Determine(u32, i64),
-    /// Collected: return the factor.
-    Done,
 }
 
 impl std::fmt::Debug for OnlineEstimator {
@@ -819,7 +816,7 @@ impl OnlineEstimator {
             return;
         }
         let determined = self.screener.cond.determined();
-        let mut model = self.model.clone();
+        let model = self.model.rows_only();
         // The rebuilt factor is small (fill-reducing order) while the live one keeps filling:
         // collect it soon (the builder's work grows with the rows, not with the live fill) —
         // but not before the builder can be done: rebuilding costs about rows · f² for a
@@ -829,30 +826,30 @@ impl OnlineEstimator {
         let delay = laplacian::MIN_DELAY
             .max(rows as u64 / 64)
             .max(per_row.ceil() as u64);
-        let (tx, rx) = std::sync::mpsc::channel::<CondMsg>();
-        let job = move || {
-            let mut fresh = Conditioner::rebuilt(&model, &determined, 0).ok()?;
-            // Keep up with the live model and determinations until collected.
-            for msg in rx {
-                match msg {
-                    CondMsg::Cycle(mu, row) => {
-                        model.push_row(mu, &row);
-                    }
-                    CondMsg::Determine(c, v) => {
-                        fresh.determine(&model, c as usize, v).ok()?;
-                    }
-                    CondMsg::Done => return Some(fresh),
+        let build = move || {
+            let fresh = Conditioner::rebuilt(&model, &determined, 0).ok()?;
+            Some((fresh, model))
+        };
+        // Keep up with the live model and determinations until collected.
+        let apply = |(fresh, model): &mut (Conditioner, GammaModel), msg: CondMsg| {
+            match msg {
+                CondMsg::Cycle(mu, row) => {
+                    model.push_row(mu, &row);
+                }
+                CondMsg::Determine(c, v) => {
+                    fresh.determine(model, c as usize, v).ok()?;
                 }
             }
-            None
+            Some(())
         };
+        let finish = |(fresh, _): (Conditioner, GammaModel)| fresh;
         let ready_at = self.counters.steps as u64 + delay;
+        let worker = &mut self.worker;
         if let Some(build) =
-            laplacian::Beside::start(&mut self.worker, "so2lin-reorder", ready_at, job)
+            laplacian::Beside::start(worker, "so2lin-reorder", ready_at, build, apply, finish)
         {
             self.renewal = Some(CondRenewal {
                 build,
-                tx,
                 cycles_sent: self.model.len(),
                 determined_sent: rows,
             });
@@ -867,28 +864,23 @@ impl OnlineEstimator {
         let mut sent = true;
         for t in r.cycles_sent..self.model.len() {
             let msg = CondMsg::Cycle(self.model.mu()[t], self.model.row(t).to_vec());
-            sent &= r.tx.send(msg).is_ok();
+            sent &= r.build.send(msg);
         }
         r.cycles_sent = self.model.len();
         for &c in &live.order()[r.determined_sent..] {
             let v = live.value(c as usize).unwrap_or(0);
-            sent &= r.tx.send(CondMsg::Determine(c, v)).is_ok();
+            sent &= r.build.send(CondMsg::Determine(c, v));
         }
         r.determined_sent = live.len();
         if !sent {
             self.renewal = None;
             return;
         }
-        if (self.counters.steps as u64) < r.build.ready_at {
-            return;
-        }
-        let done = r.tx.send(CondMsg::Done).is_ok();
-        let fresh = match r
-            .build
-            .poll(self.counters.steps as u64, &mut self.cond_waits)
-        {
-            Ok(Some(_)) if done => self.renewal.take().and_then(|r| r.build.take()),
-            _ => None,
+        let step = self.counters.steps as u64;
+        let fresh = match r.build.collect(step, &mut self.cond_waits) {
+            laplacian::Collected::NotYet => return,
+            laplacian::Collected::Failed => None,
+            laplacian::Collected::Ready(fresh) => Some(fresh),
         };
         self.renewal = None;
         let Some(fresh) = fresh else { return };

@@ -59,7 +59,7 @@ pub(crate) const DELAY_PER_ROW: f64 = 0.002;
 
 /// A change to the system, sent to a renewal's builder so that it keeps its copy up to date
 /// itself (the live factor's steps replay nothing).
-enum Msg<const K: usize> {
+pub(crate) enum Msg<const K: usize> {
     /// A new variable.
     Variable(u32),
     /// An anchor's prior row added.
@@ -70,8 +70,6 @@ enum Msg<const K: usize> {
     Edge(u32, u32, f64, [f64; K]),
     /// Edge e's y is now this.
     SetY(u32, [f64; K]),
-    /// The renewal is collected: return the factor and the rows' y.
-    Done,
 }
 
 /// What a renewal's builder returns: its factor and the right-hand sides it holds.
@@ -80,10 +78,8 @@ type Built<const K: usize> = (SqrtInfo<K>, Vec<[f64; K]>);
 /// A job that computes new right-hand sides for a renewal's snapshot, run by the builder.
 pub(crate) type Relinearise<const K: usize> = Box<dyn FnOnce() -> Vec<[f64; K]> + Send>;
 
-struct Renewal<const K: usize> {
-    build: Beside<Built<K>>,
-    tx: std::sync::mpsc::Sender<Msg<K>>,
-}
+/// A renewal of a Laplacian's factor in progress.
+type Renewal<const K: usize> = Beside<Built<K>, Msg<K>>;
 
 /// A job for a [`Worker`].
 type Job = Box<dyn FnOnce() + Send>;
@@ -144,60 +140,93 @@ fn lower_priority() {
     }
 }
 
-/// A factor built beside the live one on a [`Worker`] and collected at a step fixed when it
-/// was started (shared by the estimate's factors and the factor of P_γ, so the run does not
-/// depend on the threads' timing).
-pub(crate) struct Beside<T> {
-    result: std::sync::mpsc::Receiver<Option<T>>,
-    fresh: Option<T>,
-    pub(crate) ready_at: u64,
+/// What a [`Beside`]'s builder receives: a change to apply, or the end.
+enum Envelope<M> {
+    Change(M),
+    Done,
 }
 
-impl<T: Send + 'static> Beside<T> {
-    /// Start `job` on `worker`, to be collected at step `ready_at`. None when the worker
+/// A factor built beside the live one on a [`Worker`], kept up to date by the builder itself
+/// from the changes sent to it ([`Self::send`]: every change the live system makes after the
+/// snapshot), and collected at a step fixed when it was started — so the run does not depend
+/// on the threads' timing. The one renewal mechanism of the estimate's factors and of the
+/// factor of P_UU; they differ only in what they build and which changes they send.
+pub(crate) struct Beside<T, M> {
+    tx: std::sync::mpsc::Sender<Envelope<M>>,
+    result: std::sync::mpsc::Receiver<Option<T>>,
+    ready_at: u64,
+}
+
+/// What [`Beside::collect`] found.
+pub(crate) enum Collected<T> {
+    /// The collection step has not come.
+    NotYet,
+    /// The built factor, up to date with every change sent.
+    Ready(T),
+    /// The build failed or the builder is gone: the live factor goes on.
+    Failed,
+}
+
+impl<T: Send + 'static, M: Send + 'static> Beside<T, M> {
+    /// Start a builder on `worker`, to be collected at step `ready_at`: `build` makes the
+    /// fresh state from the snapshot it owns, `apply` applies each change sent later (None:
+    /// the renewal fails), `finish` turns the state into the result. None when the worker
     /// cannot take it: the live factor goes on, and the owner may try again later.
-    pub fn start(
+    pub fn start<S>(
         worker: &mut Worker,
         name: &str,
         ready_at: u64,
-        job: impl FnOnce() -> Option<T> + Send + 'static,
+        build: impl FnOnce() -> Option<S> + Send + 'static,
+        mut apply: impl FnMut(&mut S, M) -> Option<()> + Send + 'static,
+        finish: impl FnOnce(S) -> T + Send + 'static,
     ) -> Option<Self> {
-        let (tx, result) = std::sync::mpsc::sync_channel(1);
+        let (tx, rx) = std::sync::mpsc::channel::<Envelope<M>>();
+        let (done, result) = std::sync::mpsc::sync_channel(1);
         let job: Job = Box::new(move || {
-            let _ = tx.send(job());
+            let built = (|| {
+                let mut state = build()?;
+                for envelope in rx {
+                    match envelope {
+                        Envelope::Change(m) => apply(&mut state, m)?,
+                        Envelope::Done => return Some(finish(state)),
+                    }
+                }
+                None
+            })();
+            let _ = done.send(built);
         });
         worker.run(name, job).then_some(Self {
+            tx,
             result,
-            fresh: None,
             ready_at,
         })
     }
 
-    /// At step `step`: the built factor once its step has come (waiting for the worker, and
-    /// counting in `waits` a step that found it still busy), `Ok(None)` before, `Err(())` if
-    /// the build failed.
-    pub fn poll(&mut self, step: u64, waits: &mut usize) -> Result<Option<&mut T>, ()> {
-        use std::sync::mpsc::TryRecvError;
-        if self.fresh.is_none() {
-            if step < self.ready_at {
-                return Ok(None);
-            }
-            let got = match self.result.try_recv() {
-                Ok(got) => got,
-                Err(TryRecvError::Empty) => {
-                    *waits += 1;
-                    self.result.recv().map_err(|_| ())?
-                }
-                Err(TryRecvError::Disconnected) => return Err(()),
-            };
-            self.fresh = Some(got.ok_or(())?);
-        }
-        Ok(self.fresh.as_mut())
+    /// Tell the builder about a change; false when it is gone (the owner drops the renewal).
+    pub fn send(&self, m: M) -> bool {
+        self.tx.send(Envelope::Change(m)).is_ok()
     }
 
-    /// The built factor (after [`Self::poll`] gave it).
-    pub fn take(self) -> Option<T> {
-        self.fresh
+    /// At step `step`: before the renewal's step, [`Collected::NotYet`]; from it on, the
+    /// built factor (waiting for the builder, and counting in `waits` a step that found it
+    /// still busy), or [`Collected::Failed`].
+    pub fn collect(&self, step: u64, waits: &mut usize) -> Collected<T> {
+        use std::sync::mpsc::TryRecvError;
+        if step < self.ready_at {
+            return Collected::NotYet;
+        }
+        if self.tx.send(Envelope::Done).is_err() {
+            return Collected::Failed;
+        }
+        let got = match self.result.try_recv() {
+            Ok(got) => got,
+            Err(TryRecvError::Empty) => {
+                *waits += 1;
+                self.result.recv().ok().flatten()
+            }
+            Err(TryRecvError::Disconnected) => None,
+        };
+        got.map_or(Collected::Failed, Collected::Ready)
     }
 }
 
@@ -288,7 +317,7 @@ impl<const K: usize> Laplacian<K> {
     /// renewal (the live factor goes on).
     fn send(&mut self, msg: Msg<K>) {
         if let Some(r) = &self.renewal
-            && r.tx.send(msg).is_err()
+            && !r.send(msg)
         {
             self.renewal = None;
         }
@@ -450,64 +479,64 @@ impl<const K: usize> Laplacian<K> {
         // without bound between renewals.
         let expected_nnz = self.fill_after_renewal.max(2.0) * n as f64;
         let delay = MIN_DELAY.max((expected_nnz * DELAY_PER_ROW) as u64);
-        let (tx, rx) = std::sync::mpsc::channel::<Msg<K>>();
-        let job = move || {
+        let build = move || {
             if let Some(y) = relinearise.map(|job| job())
                 && y.len() == rows.y.len()
             {
                 rows.y = y;
             }
-            let mut f = build(&rows, &prior, n, Some(newest));
-            // Keep up with the live system until collected.
-            for msg in rx {
-                match msg {
-                    Msg::Variable(v) => f.push_variable(v as usize),
-                    Msg::Prior(p) => f.add_row(&[p], [0.0; K]),
-                    Msg::Unprior(p) => f.remove_row(&[p], [0.0; K]).ok()?,
-                    Msg::Edge(a, b, s, y) => {
-                        rows.ends.push((a, b));
-                        rows.sqrt_w.push(s);
-                        rows.y.push(y);
-                        let e = rows.ends.len() - 1;
-                        f.add_row(&rows.entries(e), rows.rhs(e));
-                    }
-                    Msg::SetY(e, y) => {
-                        let e = e as usize;
-                        let old = *rows.y.get(e)?;
-                        rows.y[e] = y;
-                        let s = rows.sqrt_w[e];
-                        f.shift_rhs(
-                            &rows.entries(e),
-                            std::array::from_fn(|q| s * (y[q] - old[q])),
-                        );
-                    }
-                    Msg::Done => return Some((f, rows.y)),
+            Some((build(&rows, &prior, n, Some(newest)), rows))
+        };
+        // Keep up with the live system until collected.
+        let apply = |(f, rows): &mut (SqrtInfo<K>, Rows<K>), msg: Msg<K>| {
+            match msg {
+                Msg::Variable(v) => f.push_variable(v as usize),
+                Msg::Prior(p) => f.add_row(&[p], [0.0; K]),
+                Msg::Unprior(p) => f.remove_row(&[p], [0.0; K]).ok()?,
+                Msg::Edge(a, b, s, y) => {
+                    rows.ends.push((a, b));
+                    rows.sqrt_w.push(s);
+                    rows.y.push(y);
+                    let e = rows.ends.len() - 1;
+                    f.add_row(&rows.entries(e), rows.rhs(e));
+                }
+                Msg::SetY(e, y) => {
+                    let e = e as usize;
+                    let old = *rows.y.get(e)?;
+                    rows.y[e] = y;
+                    let s = rows.sqrt_w[e];
+                    f.shift_rhs(
+                        &rows.entries(e),
+                        std::array::from_fn(|q| s * (y[q] - old[q])),
+                    );
                 }
             }
-            None
+            Some(())
         };
+        let finish = |(f, rows): (SqrtInfo<K>, Rows<K>)| (f, rows.y);
         let ready_at = self.steps + delay;
-        let Some(build) = Beside::start(&mut self.worker, "so2lin-renew", ready_at, job) else {
+        let worker = &mut self.worker;
+        let Some(renewal) = Beside::start(worker, "so2lin-renew", ready_at, build, apply, finish)
+        else {
             return;
         };
         self.nodes_at_renewal = n;
-        self.renewal = Some(Renewal { build, tx });
+        self.renewal = Some(renewal);
     }
 
     /// At the renewal's step: collect the builder (which has applied every change since its
     /// snapshot) and swap its factor in; the old one is freed on the worker.
     fn complete_renewal(&mut self) {
-        let Some(r) = &mut self.renewal else { return };
-        if self.steps < r.build.ready_at {
-            return;
-        }
-        let sent = r.tx.send(Msg::Done).is_ok();
-        let built = match r.build.poll(self.steps, &mut self.waits) {
-            Ok(Some(_)) if sent => self.renewal.take().and_then(|r| r.build.take()),
-            _ => None,
+        let Some(r) = &self.renewal else { return };
+        let (fresh, y) = match r.collect(self.steps, &mut self.waits) {
+            Collected::NotYet => return,
+            Collected::Failed => {
+                self.renewal = None;
+                return;
+            }
+            Collected::Ready(built) => built,
         };
         self.renewal = None;
-        let Some((fresh, y)) = built else { return };
         if y.len() != self.rows.y.len() {
             return;
         }

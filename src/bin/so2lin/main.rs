@@ -321,7 +321,7 @@ enum Command {
         #[arg(long, value_enum, default_value = "auto")]
         order: OrderArg,
     },
-    /// Feed a file's edges in file order through the online estimator, timing each step.
+    /// Feed a file's edges through the online estimator (as a robot produces them, by default), timing each step.
     Stream {
         /// Graph file (g2o or TORO).
         file: PathBuf,
