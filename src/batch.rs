@@ -424,7 +424,7 @@ pub fn translation_failures(
     let chi2: Vec<Option<f64>> = basis
         .cycles
         .iter()
-        .map(|c| crate::closure::translation_closure(&c.terms, &|e| edges[e]).map(|x| x.chi2))
+        .map(|c| crate::closure::translation_closure(&c.terms, &|e| edges[e], 1.0).map(|x| x.chi2))
         .collect();
     let mut scale = crate::closure::Scale::default();
     for &x in chi2.iter().flatten() {

@@ -317,7 +317,18 @@ pub struct OnlineEstimator {
     due: BTreeSet<(usize, usize)>,
     /// The translation closures' noise scale, from the accepted cycles.
     scale: closure::Scale,
+    /// The angle noise scale s_θ, from the accepted cycles' angle residuals.
+    angle_scale: closure::Scale,
+    /// The cycle count at which the accepted cycles are audited next ([`Self::audit`]).
+    audit_at: usize,
+    /// The scales (translation, angle) carried over a rebuild: used while the live ones have
+    /// fewer than [`closure::SCALE_MIN_CYCLES`] statistics.
+    warm: Option<(f64, f64)>,
 }
+
+/// Cycles whose conditional sd of γ is below this feed the angle noise scale: their nearest
+/// integer is their value (a genuine residual of half a turn would be 5 sd away).
+const ANGLE_SCALE_MAX_SD: f64 = 0.1;
 
 /// A quarantined loop closure.
 #[derive(Clone, Copy, Debug)]
@@ -403,6 +414,9 @@ impl OnlineEstimator {
             held: BTreeMap::new(),
             due: BTreeSet::new(),
             scale: closure::Scale::default(),
+            angle_scale: closure::Scale::angle(),
+            audit_at: closure::SCALE_MIN_CYCLES,
+            warm: None,
         })
     }
 
@@ -467,8 +481,93 @@ impl OnlineEstimator {
         };
         self.arrivals += 1;
         self.retest_due(&mut step);
+        self.audit(&mut step);
         self.refresh_counters();
         Ok(step)
+    }
+
+    /// The audit (module docs): when the cycle count reaches [`Self::audit_at`] (50, then
+    /// each doubling), the translation closure of every accepted cycle is tested again with
+    /// the current scales at its own level; the chords of the cycles that fail are
+    /// quarantined and the estimator is rebuilt by replaying every arrival in input order
+    /// without them (the current scales standing in until the replay has estimated its own).
+    /// Added to `step.quarantined`. A replay that fails leaves the estimator as it was.
+    fn audit(&mut self, step: &mut Step) {
+        if !self.config.quarantine || self.counters.cycles < self.audit_at {
+            return;
+        }
+        self.audit_at = self.counters.cycles.saturating_mul(2);
+        let scales = (self.translation_scale(), self.angle_scale());
+        let edges = self.graph.edges();
+        let mut evicted = BTreeMap::new();
+        for (t, c) in self.cycles.iter().enumerate() {
+            let limit = closure::threshold(self.config.screening.online_level(t));
+            let Some(x) = closure::translation_closure(&c.terms, &|e| edges[e], scales.1) else {
+                continue;
+            };
+            let tested = x.chi2 / scales.0;
+            if closure::fails(tested, limit) {
+                let e = c.chord() as usize;
+                let input = self.input_of[e] as usize;
+                let rejected = RejectedEdge {
+                    edge: input,
+                    from: edges[e].from(),
+                    to: edges[e].to(),
+                    test: TRANSLATION_TEST,
+                    statistic: tested,
+                    threshold: limit,
+                };
+                evicted.insert(input, Held {
+                    edge: edges[e],
+                    rejected,
+                });
+            }
+        }
+        if evicted.is_empty() {
+            return;
+        }
+        if let Ok(fresh) = self.replayed(&evicted, scales) {
+            *self = fresh;
+            step.quarantined
+                .extend(evicted.values().map(|h| h.rejected));
+        }
+    }
+
+    /// A new estimator that has seen every arrival so far in input order, with the `evicted`
+    /// loop closures put in quarantine as they arrive and `warm` as its scales until it has
+    /// estimated its own ([`Self::audit`]).
+    fn replayed(
+        &self,
+        evicted: &BTreeMap<usize, Held>,
+        warm: (f64, f64),
+    ) -> Result<Self, OnlineError> {
+        let mut arrivals: BTreeMap<usize, (Edge, bool)> = BTreeMap::new();
+        for (e, edge) in self.graph.edges().iter().enumerate() {
+            arrivals.insert(self.input_of[e] as usize, (*edge, false));
+        }
+        for (&i, h) in &self.held {
+            arrivals.insert(i, (h.edge, false));
+        }
+        for (&i, h) in evicted {
+            arrivals.insert(i, (h.edge, true));
+        }
+        let mut fresh = Self::new(self.config)?;
+        fresh.warm = Some(warm);
+        fresh.audit_at = self.audit_at;
+        for (i, (edge, held)) in arrivals {
+            match evicted.get(&i) {
+                Some(h) if held => {
+                    let mut step = fresh.hold(edge, h.rejected);
+                    fresh.arrivals += 1;
+                    fresh.retest_due(&mut step);
+                    fresh.refresh_counters();
+                }
+                _ => {
+                    fresh.add_edge_inner(edge)?;
+                }
+            }
+        }
+        Ok(fresh)
     }
 
     /// A tree edge: a new node, or two components joined.
@@ -542,9 +641,11 @@ impl OnlineEstimator {
             let graph = &self.graph;
             let of = |i: usize| if i == e { edge } else { graph.edges()[i] };
             let limit = closure::threshold(level);
-            translation = closure::translation_closure(&cycle.terms, &of).map(|c| c.chi2);
+            let angle_scale = self.angle_scale();
+            translation =
+                closure::translation_closure(&cycle.terms, &of, angle_scale).map(|c| c.chi2);
             if let Some(chi2) = translation {
-                let tested = chi2 / self.scale.value();
+                let tested = chi2 / self.translation_scale();
                 if closure::fails(tested, limit) {
                     return Ok(Err(reject(TRANSLATION_TEST, tested, limit)));
                 }
@@ -555,13 +656,21 @@ impl OnlineEstimator {
         let t = self.model.push_cycle(&cycle, &self.sigma2, &self.delta);
         self.screener.grow(t + 1);
         let q = self.config.screening.quantile_at(level);
-        let (m, iv, determined) = self.screener.screen(&self.model, t, q, || edges_of(&cycle));
-        if quarantine && iv.inconsistent {
+        // The angle test at the angle noise scale s_θ (module docs): the residual to the
+        // nearest integer in sd·√s_θ; s_θ = 1 is the interval holding no integer. A cycle
+        // that fails it is not determined.
+        let root = self.angle_scale().sqrt();
+        let fails = |m: Moments| quarantine && normalised_residual(m) / root > q;
+        let (m, iv, determined) =
+            self.screener
+                .screen_unless(&self.model, t, q, || edges_of(&cycle), fails);
+        let residual = normalised_residual(m) / root;
+        if quarantine && (iv.inconsistent || fails(m)) {
             self.model.pop_cycle(&cycle);
             self.screener.truncate(t);
             self.sigma2.pop();
             self.delta.pop();
-            return Ok(Err(reject(ANGLE_TEST, normalised_residual(m), q)));
+            return Ok(Err(reject(ANGLE_TEST, residual, q)));
         }
         // Cannot fail with CreateUnknown between known nodes.
         self.graph.add_edge(edge, NodePolicy::CreateUnknown)?;
@@ -569,6 +678,10 @@ impl OnlineEstimator {
         self.accept(input);
         if let Some(chi2) = translation {
             self.scale.push(chi2);
+        }
+        if m.sd() < ANGLE_SCALE_MAX_SD {
+            let r = normalised_residual(m);
+            self.angle_scale.push(r * r);
         }
         self.counters.cycles += 1;
         self.chord_cycle[e] = t as u32;
@@ -936,6 +1049,24 @@ impl OnlineEstimator {
     /// statistic and the threshold it exceeded (at its last test).
     pub fn rejected(&self) -> Vec<RejectedEdge> {
         self.held.values().map(|h| h.rejected).collect()
+    }
+
+    /// The noise scale s of the translation closures ([`closure::Scale`]): a closure's χ²₂
+    /// is tested as `χ²₂ / s`.
+    pub fn translation_scale(&self) -> f64 {
+        match self.warm {
+            Some((t, _)) if self.scale.len() < closure::SCALE_MIN_CYCLES => t,
+            _ => self.scale.value(),
+        }
+    }
+
+    /// The angle noise scale s_θ ([`closure::Scale::angle`]): the quarantine's angle test and
+    /// the translation closures' heading noise use the declared angle variances times s_θ.
+    pub fn angle_scale(&self) -> f64 {
+        match self.warm {
+            Some((_, a)) if self.angle_scale.len() < closure::SCALE_MIN_CYCLES => a,
+            _ => self.angle_scale.value(),
+        }
     }
 
     /// The cycles closed so far (the incremental basis), in order.
