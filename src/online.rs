@@ -25,16 +25,36 @@
 //! [§11](crate::method#11-false-loop-closures)): a loop closure is tested *before* it is added.
 //! Its cycle is found by [`IncrementalBasis::probe`] and tested twice at the cycle's level α_t:
 //! the SE(2) translation closure ([`crate::closure`], `χ²_t / s > −4 ln α_t`, s the noise scale
-//! estimated from the accepted cycles, [`closure::Scale`]) and the angle (the
-//! screening above: an interval holding no integer). A loop closure failing either is
+//! estimated from the accepted cycles, [`closure::Scale`]; the edges' angle variances times the
+//! angle noise scale s_θ) and the angle: the distance r of γ's conditional mean to the nearest
+//! integer, in conditional sd, fails when `r / √s_θ > q_t` (with s_θ = 1: the screening's
+//! interval holding no integer). s_θ is estimated like s ([`closure::Scale::angle`]) from `r²`
+//! of the accepted cycles whose conditional sd is below 0.1 (their nearest integer is their
+//! value). The scales sharpen the quarantine's tests only: the screening that determines γ
+//! keeps the declared noise, so the integer guarantee is untouched. A loop closure failing either is
 //! **quarantined**: never added to the graph, the basis (no later cycle is routed through it),
 //! the γ model, the conditioning or the estimate; it is kept with its test, statistic and
 //! threshold ([`OnlineEstimator::rejected`], [`Step::quarantined`]). On data that follow the
 //! declared noise, the angle tests spend α/2 (the α-spending sequence) and the translation tests
 //! another α/2 at the same levels (with the margin of [`crate::closure`], checked empirically),
-//! so the probability that any genuine edge is quarantined is ≤ α. **Re-admission**: a quarantined loop closure is re-tested, through the same path a new
+//! so the probability that any genuine edge is quarantined is ≤ α (the scales, estimated from
+//! the data's tails, keep this empirically: `tests/statistics.rs`).
+//!
+//! **Audit**: before 50 cycles no scale is estimated (s = s_θ = 1, the declared noise), and a
+//! false loop closure among the first cycles can pass; once in, later cycles are routed
+//! through it. So when the cycle count reaches 50, and at each doubling after, every accepted
+//! cycle's translation closure is tested again with the current scales at its own level; the
+//! chords of the cycles that fail are quarantined and the estimator is **rebuilt** by
+//! replaying every arrival in input order without them (the current scales standing in for
+//! the replay's own until it has 50 cycles): O(m) per rebuild, O(Σ n_t) per audit, and on clean
+//! data no rebuild. After a rebuild, [`Step::quarantined`] lists the evicted edges and the
+//! step's `kind` and `rescreened` describe the step before it (cycle ids may have changed).
+//!
+//! **Re-admission**: a quarantined loop closure is re-tested, through the same path a new
 //! loop closure takes (a new probe, so a shorter path that appeared since is used), when the
-//! number of cycles has doubled since its last test (and grown by at least 32): O(log ℓ) tests
+//! number of cycles has doubled since its last test (and grown by at least 32), or grown
+//! eightfold when it failed by far (χ² above 4× the threshold: a random false edge, whose
+//! re-tests cost a search of the graph each): O(log ℓ) tests
 //! per edge. The re-test is at the per-cycle level α, not the family-wise α_t — stricter, so a
 //! false edge rarely slips in by being tried again, while a genuine edge quarantined by chance
 //! (or by a path through an accepted false edge that has since been bypassed) passes with
@@ -324,7 +344,28 @@ pub struct OnlineEstimator {
     /// The scales (translation, angle) carried over a rebuild: used while the live ones have
     /// fewer than [`closure::SCALE_MIN_CYCLES`] statistics.
     warm: Option<(f64, f64)>,
+    /// Accepted loop closures (graph edge index) on the paths of cycles that failed since
+    /// they were last examined: (failures, failures at which to examine them next).
+    suspects: BTreeMap<usize, Suspect>,
+    /// Set while the estimator is being rebuilt by a replay: no audit, no examination (no
+    /// nested rebuild); the suspects it counts are examined at the next step.
+    replaying: bool,
 }
+
+/// An accepted loop closure on the paths of failed cycles ([`OnlineEstimator::suspect`]).
+#[derive(Clone, Copy, Debug)]
+struct Suspect {
+    /// Failed cycles through it since it was last examined.
+    failures: u32,
+    /// Failures at which it is examined next.
+    bar: u32,
+    /// The last loop closure that failed through it.
+    last: Edge,
+}
+
+/// An accepted loop closure on the paths of this many failed cycles is re-examined
+/// ([`OnlineEstimator::examine_suspects`]); the bar doubles after each examination.
+const SUSPECT_FAILURES: u32 = 3;
 
 /// Cycles whose conditional sd of γ is below this feed the angle noise scale: their nearest
 /// integer is their value (a genuine residual of half a turn would be 5 sd away).
@@ -343,10 +384,24 @@ pub const ANGLE_TEST: &str = "cycle_angle";
 pub const TRANSLATION_TEST: &str = "cycle_translation";
 
 /// The cycle count at which a loop closure quarantined when `cycles` had closed is re-tested:
-/// twice as many, and at least 32 more.
-fn retest_after(cycles: usize) -> usize {
-    cycles.saturating_mul(2).max(cycles + 32)
+/// twice as many, and at least 32 more; eight times as many when it failed by far (its χ²
+/// above [`FAR`] times the threshold: a random false edge, whose re-tests would cost one
+/// search of the graph each for nothing; a genuine edge that failed by far because its path
+/// ran through an accepted false edge is replayed when the audit removes that edge).
+fn retest_after(cycles: usize, rejected: &RejectedEdge) -> usize {
+    let ratio = rejected.statistic / rejected.threshold;
+    let excess = if rejected.test == ANGLE_TEST {
+        ratio * ratio
+    } else {
+        ratio
+    };
+    let factor = if excess > FAR { 8 } else { 2 };
+    cycles.saturating_mul(factor).max(cycles + 32)
 }
+
+/// A test failed by far: its χ² (the angle residual squared) above this multiple of the
+/// threshold ([`retest_after`]).
+const FAR: f64 = 4.0;
 
 /// A renewal of the P_UU factor built beside the live one ([`OnlineEstimator::maybe_reorder`]).
 struct CondRenewal {
@@ -417,6 +472,8 @@ impl OnlineEstimator {
             angle_scale: closure::Scale::angle(),
             audit_at: closure::SCALE_MIN_CYCLES,
             warm: None,
+            suspects: BTreeMap::new(),
+            replaying: false,
         })
     }
 
@@ -481,6 +538,7 @@ impl OnlineEstimator {
         };
         self.arrivals += 1;
         self.retest_due(&mut step);
+        self.examine_suspects(&mut step);
         self.audit(&mut step);
         self.refresh_counters();
         Ok(step)
@@ -493,7 +551,7 @@ impl OnlineEstimator {
     /// without them (the current scales standing in until the replay has estimated its own).
     /// Added to `step.quarantined`. A replay that fails leaves the estimator as it was.
     fn audit(&mut self, step: &mut Step) {
-        if !self.config.quarantine || self.counters.cycles < self.audit_at {
+        if !self.config.quarantine || self.replaying || self.counters.cycles < self.audit_at {
             return;
         }
         self.audit_at = self.counters.cycles.saturating_mul(2);
@@ -523,14 +581,116 @@ impl OnlineEstimator {
                 });
             }
         }
+        self.evict(&evicted, scales, step);
+    }
+
+    /// Quarantine the accepted loop closures `evicted` (by input index) and rebuild the
+    /// estimator without them ([`Self::replayed`]); they are added to `step.quarantined`.
+    /// A replay that fails leaves the estimator as it was.
+    fn evict(&mut self, evicted: &BTreeMap<usize, Held>, scales: (f64, f64), step: &mut Step) {
         if evicted.is_empty() {
             return;
         }
-        if let Ok(fresh) = self.replayed(&evicted, scales) {
+        if let Ok(fresh) = self.replayed(evicted, scales) {
             *self = fresh;
             step.quarantined
                 .extend(evicted.values().map(|h| h.rejected));
         }
+    }
+
+    /// Count a failed cycle against the accepted loop closures on its path (module docs:
+    /// path-triggered re-examination).
+    fn suspect(&mut self, cycle: &Cycle, failed: Edge) {
+        for t in &cycle.terms[1..] {
+            let e = t.edge as usize;
+            if self.chord_cycle.get(e).is_some_and(|&c| c != NONE) {
+                let s = self.suspects.entry(e).or_insert(Suspect {
+                    failures: 0,
+                    bar: SUSPECT_FAILURES,
+                    last: failed,
+                });
+                s.failures += 1;
+                s.last = failed;
+            }
+        }
+    }
+
+    /// Whether the loop closure `failed` passes the translation test, with the current
+    /// scales at `level`, on the cycle it closes when edge `e` is avoided.
+    fn passes_without(&mut self, failed: Edge, e: usize, scales: (f64, f64), level: f64) -> bool {
+        let (Some(a), Some(b)) = (
+            self.graph.node_index(failed.from()),
+            self.graph.node_index(failed.to()),
+        ) else {
+            return false;
+        };
+        let Some(cycle) = self.basis.probe_avoiding(a, b, e) else {
+            return false;
+        };
+        let n = self.graph.edge_count();
+        let edges = self.graph.edges();
+        let of = |i: usize| if i == n { failed } else { edges[i] };
+        closure::translation_closure(&cycle.terms, &of, scales.1)
+            .is_some_and(|x| !closure::fails(x.chi2 / scales.0, closure::threshold(level)))
+    }
+
+    /// Re-examine the accepted loop closures on the paths of [`SUSPECT_FAILURES`] (then
+    /// twice as many, …) failed cycles (module docs). Such an edge e is evicted
+    /// ([`Self::evict`]) when the last loop closure that failed through it passes its
+    /// translation test at the per-cycle level α on the path that avoids e
+    /// ([`IncrementalBasis::probe_avoiding`]), or when e's own cycle on the path that avoids
+    /// it fails at e's level (the graph has grown since e was accepted: the path may be
+    /// shorter and the test sharper). The reported statistic is that of e's own cycle.
+    fn examine_suspects(&mut self, step: &mut Step) {
+        if !self.config.quarantine || self.replaying {
+            return;
+        }
+        let due: Vec<(usize, Edge)> = self
+            .suspects
+            .iter()
+            .filter(|(_, s)| s.failures >= s.bar)
+            .map(|(&e, s)| (e, s.last))
+            .collect();
+        if due.is_empty() {
+            return;
+        }
+        let scales = (self.translation_scale(), self.angle_scale());
+        let mut evicted = BTreeMap::new();
+        for (e, last) in due {
+            if let Some(s) = self.suspects.get_mut(&e) {
+                s.bar = s.bar.saturating_mul(2);
+            }
+            let t = self.chord_cycle[e] as usize;
+            let level = self.config.screening.online_level(t);
+            let limit = closure::threshold(level);
+            // The last loop closure that failed through e passes without it (at the
+            // per-cycle level, as a re-test): e is to blame.
+            let blamed = self.passes_without(last, e, scales, self.config.screening.alpha);
+            let edges = self.graph.edges();
+            let (a, b) = self.graph.endpoints()[e];
+            let own = self.basis.probe_avoiding(a, b, e).and_then(|c| {
+                let n = edges.len();
+                let of = |i: usize| if i == n { edges[e] } else { edges[i] };
+                closure::translation_closure(&c.terms, &of, scales.1)
+            });
+            let tested = own.map_or(0.0, |x| x.chi2 / scales.0);
+            if blamed || closure::fails(tested, limit) {
+                let input = self.input_of[e] as usize;
+                let rejected = RejectedEdge {
+                    edge: input,
+                    from: edges[e].from(),
+                    to: edges[e].to(),
+                    test: TRANSLATION_TEST,
+                    statistic: tested,
+                    threshold: limit,
+                };
+                evicted.insert(input, Held {
+                    edge: edges[e],
+                    rejected,
+                });
+            }
+        }
+        self.evict(&evicted, scales, step);
     }
 
     /// A new estimator that has seen every arrival so far in input order, with the `evicted`
@@ -554,6 +714,7 @@ impl OnlineEstimator {
         let mut fresh = Self::new(self.config)?;
         fresh.warm = Some(warm);
         fresh.audit_at = self.audit_at;
+        fresh.replaying = true;
         for (i, (edge, held)) in arrivals {
             match evicted.get(&i) {
                 Some(h) if held => {
@@ -567,6 +728,7 @@ impl OnlineEstimator {
                 }
             }
         }
+        fresh.replaying = false;
         Ok(fresh)
     }
 
@@ -647,6 +809,7 @@ impl OnlineEstimator {
             if let Some(chi2) = translation {
                 let tested = chi2 / self.translation_scale();
                 if closure::fails(tested, limit) {
+                    self.suspect(&cycle, edge);
                     return Ok(Err(reject(TRANSLATION_TEST, tested, limit)));
                 }
             }
@@ -670,6 +833,7 @@ impl OnlineEstimator {
             self.screener.truncate(t);
             self.sigma2.pop();
             self.delta.pop();
+            self.suspect(&cycle, edge);
             return Ok(Err(reject(ANGLE_TEST, residual, q)));
         }
         // Cannot fail with CreateUnknown between known nodes.
@@ -724,7 +888,7 @@ impl OnlineEstimator {
     /// cycles have doubled ([`Self::retest_due`]).
     fn hold(&mut self, edge: Edge, rejected: RejectedEdge) -> Step {
         let input = rejected.edge;
-        let due = retest_after(self.counters.cycles);
+        let due = retest_after(self.counters.cycles, &rejected);
         self.held.insert(input, Held { edge, rejected });
         self.due.insert((due, input));
         Step {
@@ -778,7 +942,7 @@ impl OnlineEstimator {
                     step.rescreened.sort_by_key(|x| x.cycle);
                 }
                 Err(rejected) => {
-                    let due = retest_after(self.counters.cycles);
+                    let due = retest_after(self.counters.cycles, &rejected);
                     let edge = held.edge;
                     self.held.insert(input, Held { edge, rejected });
                     self.due.insert((due, input));
