@@ -40,15 +40,22 @@
 //! so the probability that any genuine edge is quarantined is ≤ α (the scales, estimated from
 //! the data's tails, keep this empirically: `tests/statistics.rs`).
 //!
-//! **Audit**: before 50 cycles no scale is estimated (s = s_θ = 1, the declared noise), and a
+//! **Audit** (family-wise setting only, like the examination below): before 50 cycles no scale is estimated (s = s_θ = 1, the declared noise), and a
 //! false loop closure among the first cycles can pass; once in, later cycles are routed
 //! through it. So when the cycle count reaches 50, and at each doubling after, every accepted
-//! cycle's translation closure is tested again with the current scales at its own level; the
+//! cycle's translation closure is tested again with the current scales at the family-wise
+//! α-spending level of its cycle (whatever the screening's setting); the
 //! chords of the cycles that fail are quarantined and the estimator is **rebuilt** by
 //! replaying every arrival in input order without them (the current scales standing in for
 //! the replay's own until it has 50 cycles): O(m) per rebuild, O(Σ n_t) per audit, and on clean
 //! data no rebuild. After a rebuild, [`Step::quarantined`] lists the evicted edges and the
 //! step's `kind` and `rescreened` describe the step before it (cycle ids may have changed).
+//! **Path-triggered examination**: a false loop closure closing a long cycle can pass later
+//! too, and the genuine loop closures after it, routed through it, then fail. Each failed
+//! cycle (failing at the family-wise level) counts against the accepted loop closures on its
+//! path; at 3 failures (then 6, 12, …) such an edge e is examined: it is evicted as above when
+//! the last loop closure that failed through it passes (at the per-cycle level α) on the
+//! least-σ² path avoiding e, or when e's own cycle on the path avoiding it fails.
 //!
 //! **Re-admission**: a quarantined loop closure is re-tested, through the same path a new
 //! loop closure takes (a new probe, so a shorter path that appeared since is used), when the
@@ -546,12 +553,12 @@ impl OnlineEstimator {
 
     /// The audit (module docs): when the cycle count reaches [`Self::audit_at`] (50, then
     /// each doubling), the translation closure of every accepted cycle is tested again with
-    /// the current scales at its own level; the chords of the cycles that fail are
+    /// the current scales at [`Self::eviction_level`]; the chords of the cycles that fail are
     /// quarantined and the estimator is rebuilt by replaying every arrival in input order
     /// without them (the current scales standing in until the replay has estimated its own).
     /// Added to `step.quarantined`. A replay that fails leaves the estimator as it was.
     fn audit(&mut self, step: &mut Step) {
-        if !self.config.quarantine || self.replaying || self.counters.cycles < self.audit_at {
+        if !self.evicts() || self.counters.cycles < self.audit_at {
             return;
         }
         self.audit_at = self.counters.cycles.saturating_mul(2);
@@ -559,7 +566,7 @@ impl OnlineEstimator {
         let edges = self.graph.edges();
         let mut evicted = BTreeMap::new();
         for (t, c) in self.cycles.iter().enumerate() {
-            let limit = closure::threshold(self.config.screening.online_level(t));
+            let limit = closure::threshold(self.eviction_level(t));
             let Some(x) = closure::translation_closure(&c.terms, &|e| edges[e], scales.1) else {
                 continue;
             };
@@ -596,6 +603,25 @@ impl OnlineEstimator {
             step.quarantined
                 .extend(evicted.values().map(|h| h.rejected));
         }
+    }
+
+    /// Whether accepted loop closures may be evicted now (audit, examination): quarantine on,
+    /// the family-wise setting (the default; at a per-cycle level the tests are too loose to
+    /// evict on), and not within a replay.
+    fn evicts(&self) -> bool {
+        self.config.quarantine && self.config.screening.family_wise && !self.replaying
+    }
+
+    /// The level at which an accepted loop closure is evicted, and a failed cycle counts
+    /// against the loop closures on its path: the family-wise α-spending level of cycle t
+    /// whatever the screening's setting (a loose per-cycle level must not evict genuine edges
+    /// by chance).
+    fn eviction_level(&self, t: usize) -> f64 {
+        ScreeningConfig {
+            family_wise: true,
+            ..self.config.screening
+        }
+        .online_level(t)
     }
 
     /// Count a failed cycle against the accepted loop closures on its path (module docs:
@@ -639,10 +665,10 @@ impl OnlineEstimator {
     /// ([`Self::evict`]) when the last loop closure that failed through it passes its
     /// translation test at the per-cycle level α on the path that avoids e
     /// ([`IncrementalBasis::probe_avoiding`]), or when e's own cycle on the path that avoids
-    /// it fails at e's level (the graph has grown since e was accepted: the path may be
+    /// it fails at [`Self::eviction_level`] (the graph has grown since e was accepted: the path may be
     /// shorter and the test sharper). The reported statistic is that of e's own cycle.
     fn examine_suspects(&mut self, step: &mut Step) {
-        if !self.config.quarantine || self.replaying {
+        if !self.evicts() {
             return;
         }
         let due: Vec<(usize, Edge)> = self
@@ -661,8 +687,7 @@ impl OnlineEstimator {
                 s.bar = s.bar.saturating_mul(2);
             }
             let t = self.chord_cycle[e] as usize;
-            let level = self.config.screening.online_level(t);
-            let limit = closure::threshold(level);
+            let limit = closure::threshold(self.eviction_level(t));
             // The last loop closure that failed through e passes without it (at the
             // per-cycle level, as a re-test): e is to blame.
             let blamed = self.passes_without(last, e, scales, self.config.screening.alpha);
@@ -798,18 +823,23 @@ impl OnlineEstimator {
             statistic,
             threshold,
         };
-        let mut translation = None;
         if quarantine {
             let graph = &self.graph;
             let of = |i: usize| if i == e { edge } else { graph.edges()[i] };
             let limit = closure::threshold(level);
             let angle_scale = self.angle_scale();
-            translation =
+            let translation =
                 closure::translation_closure(&cycle.terms, &of, angle_scale).map(|c| c.chi2);
             if let Some(chi2) = translation {
                 let tested = chi2 / self.translation_scale();
+                let far = closure::threshold(self.eviction_level(self.model.len()));
+                if !closure::fails(tested, far) {
+                    self.scale.push(chi2);
+                }
                 if closure::fails(tested, limit) {
-                    self.suspect(&cycle, edge);
+                    if closure::fails(tested, far) {
+                        self.suspect(&cycle, edge);
+                    }
                     return Ok(Err(reject(TRANSLATION_TEST, tested, limit)));
                 }
             }
@@ -828,25 +858,26 @@ impl OnlineEstimator {
             self.screener
                 .screen_unless(&self.model, t, q, || edges_of(&cycle), fails);
         let residual = normalised_residual(m) / root;
+        let far = self.config.screening.quantile_at(self.eviction_level(t));
+        if quarantine && m.sd() < ANGLE_SCALE_MAX_SD && residual <= far {
+            let r = normalised_residual(m);
+            self.angle_scale.push(r * r);
+        }
         if quarantine && (iv.inconsistent || fails(m)) {
             self.model.pop_cycle(&cycle);
             self.screener.truncate(t);
             self.sigma2.pop();
             self.delta.pop();
-            self.suspect(&cycle, edge);
+            if iv.inconsistent || residual > far {
+                self.suspect(&cycle, edge);
+            }
             return Ok(Err(reject(ANGLE_TEST, residual, q)));
         }
         // Cannot fail with CreateUnknown between known nodes.
         self.graph.add_edge(edge, NodePolicy::CreateUnknown)?;
         self.basis.commit(a, b, edge.sigma2(), true);
         self.accept(input);
-        if let Some(chi2) = translation {
-            self.scale.push(chi2);
-        }
-        if m.sd() < ANGLE_SCALE_MAX_SD {
-            let r = normalised_residual(m);
-            self.angle_scale.push(r * r);
-        }
+
         self.counters.cycles += 1;
         self.chord_cycle[e] = t as u32;
         for term in &cycle.terms[1..] {

@@ -146,8 +146,8 @@ fn genuine_edges_quarantined_by_chance_are_readmitted() {
     let mut held_at = Vec::new();
     for e in world.graph.edges() {
         let s = est.add_edge(*e).unwrap();
-        if !s.quarantined.is_empty() {
-            held_at.push((s.edge, est.counters().cycles));
+        for r in &s.quarantined {
+            held_at.push((r.edge, est.counters().cycles));
         }
         steps.push(s);
     }
