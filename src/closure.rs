@@ -40,7 +40,7 @@
 //! wider than their data (the 99th percentile of χ²_t over their cycles is 2–7 % of χ²_2's on
 //! M3500, INTEL, city10000, CSAIL, FR079), which leaves a ±10 m false edge inside the test. The
 //! statistic is tested as `χ²_t / s`, with `s` the ratio of the accepted cycles' 99th
-//! percentile to χ²_2's, capped at 4× the ratio of their median to χ²_2's (so that false
+//! percentile to χ²_2's, capped at 8× the ratio of their median to χ²_2's (so that false
 //! edges that slipped through, beyond 1 % of the cycles, cannot drag it up: [`Scale`]),
 //! clamped to [0.01, 1]: never wider than declared, estimated from the
 //! tail (not the median, which is too optimistic for real, heavy-tailed errors: with the median
@@ -148,6 +148,8 @@ impl RunningQuantile {
 pub struct Scale {
     /// `χ²_d⁻¹(0.99)` and `χ²_d⁻¹(0.5)`.
     reference: (f64, f64),
+    /// The smallest value.
+    floor: f64,
     high: RunningQuantile,
     median: RunningQuantile,
 }
@@ -163,9 +165,13 @@ impl Default for Scale {
 pub const SCALE_MIN_CYCLES: usize = 50;
 /// The smallest scale: declared variances at most 100× too wide are corrected.
 pub const SCALE_FLOOR: f64 = 0.01;
+/// The smallest angle scale ([`Scale::angle`]): with the angle variances of long cycles
+/// shrunk further, the clean ais2klinik and w20000 files quarantined hundreds of genuine loop
+/// closures (their heading errors around long loops are wider than the short cycles show).
+pub const ANGLE_SCALE_FLOOR: f64 = 0.25;
 /// How much heavier than χ²_d's the tail may be before the median caps the scale
 /// ([`Scale`]): `Q_0.99/Q_0.5` of the data at most this multiple of χ²_d's.
-pub const TAIL_CAP: f64 = 4.0;
+pub const TAIL_CAP: f64 = 8.0;
 /// `χ²_2⁻¹(0.99) = −2 ln 0.01`.
 const Q99: f64 = 9.210_340_371_976_184;
 /// `χ²_2⁻¹(0.5) = 2 ln 2`.
@@ -179,6 +185,7 @@ impl Scale {
     fn with_reference(q99: f64, q50: f64) -> Self {
         Self {
             reference: (q99, q50),
+            floor: SCALE_FLOOR,
             high: RunningQuantile::new(100),
             median: RunningQuantile::new(2),
         }
@@ -187,7 +194,10 @@ impl Scale {
     /// The scale of the angle residuals of cycles (squared distance of γ's conditional mean
     /// to its value, in conditional variances: χ²_1 on data that follow the declared noise).
     pub fn angle() -> Self {
-        Self::with_reference(Q99_1, Q50_1)
+        Self {
+            floor: ANGLE_SCALE_FLOOR,
+            ..Self::with_reference(Q99_1, Q50_1)
+        }
     }
 
     /// Record the statistic of an accepted cycle (NaN and negative values are ignored).
@@ -226,7 +236,7 @@ impl Scale {
         let (r99, r50) = self.reference;
         let high = self.high.value().map_or(1.0, |q| q / r99);
         let body = self.median.value().map_or(1.0, |q| TAIL_CAP * q / r50);
-        high.min(body).clamp(SCALE_FLOOR, 1.0)
+        high.min(body).clamp(self.floor, 1.0)
     }
 }
 
@@ -446,9 +456,9 @@ mod tests {
         for k in 0..1000 {
             let u = (k as f64 + 0.5) / 1000.0;
             let z = std::f64::consts::SQRT_2 * statrs::function::erf::erf_inv(u);
-            a.push(0.05 * z * z);
+            a.push(0.5 * z * z);
         }
-        assert!((a.value() - 0.05).abs() < 0.005, "{}", a.value());
+        assert!((a.value() - 0.5).abs() < 0.05, "{}", a.value());
         assert!((a.tail_ratio() - 1.0).abs() < 0.1, "{}", a.tail_ratio());
     }
 
@@ -479,7 +489,9 @@ mod tests {
                     edge(e.from(), e.to(), e.measurement().compose(eps))
                 })
                 .collect();
-            let r = translation_closure(terms, &|e| noisy[e], 1.0).unwrap().residual;
+            let r = translation_closure(terms, &|e| noisy[e], 1.0)
+                .unwrap()
+                .residual;
             for a in 0..2 {
                 mean[a] += r[a] / n as f64;
                 for b in 0..2 {
