@@ -344,7 +344,7 @@ pub fn solve_robust(
     // solution no longer needs.
     let chi2: Vec<f64> = crate::refine::edge_costs(graph, &x).collect();
     let before = rejected.len();
-    rejected.retain(|r| r.test == "se2_chi2" || !(chi2[r.edge] <= phi.1));
+    rejected.retain(|r| r.test == "se2_chi2" || chi2[r.edge].is_nan() || chi2[r.edge] > phi.1);
     if rejected.len() < before {
         let mut keep = vec![1.0; edges.len()];
         for r in &rejected {
