@@ -36,8 +36,11 @@
 //! met before any later cycle is routed through it; the passes then catch what slipped through.
 //!
 //! After a pass that rejected edges, the graph without them is screened again and solved from
-//! its own θ* by a new pass (at most five passes); the final poses are the plain refinement
-//! on the edges kept: on clean data, the ordinary least-squares optimum.
+//! its own θ* by a new pass (at most five passes). Then the loop closures the quarantine
+//! pass left out whose `χ²_e ≤ Φ` (d = 3) at the robust poses are restored (a genuine edge
+//! quarantined online because its cycle then ran through a false edge fits the solution);
+//! the final poses are the plain refinement on the edges kept: on clean data, the ordinary
+//! least-squares optimum.
 //!
 //! Orientations and positions are linear given the wraps, so every round is re-weighted sparse
 //! solves.
@@ -336,6 +339,19 @@ pub fn solve_robust(
         rejected.sort_by_key(|r| r.edge);
         (g, theta0) = without(&rejected, &mut alive)?;
     }
+    // Loop closures quarantined online whose SE(2) χ²_e at the robust solution is within Φ
+    // are restored (module docs): the online tests saw them through cycles that the
+    // solution no longer needs.
+    let chi2: Vec<f64> = crate::refine::edge_costs(graph, &x).collect();
+    let before = rejected.len();
+    rejected.retain(|r| r.test == "se2_chi2" || chi2[r.edge].is_nan() || chi2[r.edge] > phi.1);
+    if rejected.len() < before {
+        let mut keep = vec![1.0; edges.len()];
+        for r in &rejected {
+            keep[r.edge] = 0.0;
+        }
+        g = reweighted(graph, &keep)?;
+    }
     let refined = crate::refine::refine(&g, &x, refine)?;
     let (chi2_orientation, linear) = first.unwrap_or_default();
     let cost_linear = refine.residual.cost(graph, &linear);
@@ -424,7 +440,7 @@ pub fn translation_failures(
     let chi2: Vec<Option<f64>> = basis
         .cycles
         .iter()
-        .map(|c| crate::closure::translation_closure(&c.terms, &|e| edges[e]).map(|x| x.chi2))
+        .map(|c| crate::closure::translation_closure(&c.terms, &|e| edges[e], 1.0).map(|x| x.chi2))
         .collect();
     let mut scale = crate::closure::Scale::default();
     for &x in chi2.iter().flatten() {

@@ -713,7 +713,27 @@ impl Screener {
         q: f64,
         edges: impl FnOnce() -> Vec<usize>,
     ) -> (Moments, Interval, bool) {
-        let (m, outcome) = self.cond.decide(model, i, |m| Interval::new(m, q).single());
+        self.screen_unless(model, i, q, edges, |_| false)
+    }
+
+    /// [`Self::screen`], except that the cycle is not determined when `veto(moments)` holds
+    /// (the online quarantine's sharpened angle test: a cycle about to be quarantined must not
+    /// enter the conditioning).
+    pub fn screen_unless(
+        &mut self,
+        model: &GammaModel,
+        i: usize,
+        q: f64,
+        edges: impl FnOnce() -> Vec<usize>,
+        veto: impl Fn(Moments) -> bool,
+    ) -> (Moments, Interval, bool) {
+        let (m, outcome) = self.cond.decide(model, i, |m| {
+            if veto(m) {
+                None
+            } else {
+                Interval::new(m, q).single()
+            }
+        });
         let iv = self.test(i, m, q, edges);
         if let Ok(Some(v)) = outcome {
             self.determined[i] = true;

@@ -146,8 +146,8 @@ fn genuine_edges_quarantined_by_chance_are_readmitted() {
     let mut held_at = Vec::new();
     for e in world.graph.edges() {
         let s = est.add_edge(*e).unwrap();
-        if !s.quarantined.is_empty() {
-            held_at.push((s.edge, est.counters().cycles));
+        for r in &s.quarantined {
+            held_at.push((r.edge, est.counters().cycles));
         }
         steps.push(s);
     }
@@ -188,4 +188,66 @@ fn genuine_edges_quarantined_by_chance_are_readmitted() {
         g.add_edge(*e, so2lin::NodePolicy::CreateUnknown).unwrap();
     }
     assert_eq!(g.node_count(), est.graph().node_count());
+}
+
+/// The graph with every information matrix divided by `factor` (declared variances `factor`
+/// times wider than the noise drawn), as in the benchmark files (method §11: 6–22× too wide).
+fn declared_wider(g: &PoseGraph, factor: f64) -> PoseGraph {
+    let mut out = PoseGraph::new();
+    for e in g.edges() {
+        let info = so2lin::graph::Information(e.information().0.map(|v| v / factor));
+        let wide = Edge::new(e.from(), e.to(), e.measurement(), info).unwrap();
+        out.add_edge(wide, so2lin::NodePolicy::CreateUnknown)
+            .unwrap();
+    }
+    out
+}
+
+/// Declared noise 16× wider than the data's in variance and random false loop closures from
+/// the first cycles on (before 50 cycles no noise scale is estimated, and a false edge
+/// closing a long cycle passes both tests at the declared noise): the angle noise scale
+/// sharpens the angle test and the translation closures' heading noise, the audit at 50
+/// cycles (and each doubling) re-tests the accepted cycles with the scales and quarantines
+/// the false edges that slipped in. Pooled over worlds, the quarantined set has precision and
+/// recall ≥ 0.95 (the target), and a clean copy of each world quarantines nothing.
+#[test]
+#[ignore = "needs the audit and examination evictions (online.rs EVICT, off): measured 0.907 / 0.641 without them, 0.997 / 0.984 with them"]
+fn random_false_edges_are_caught_when_the_declared_noise_is_too_wide() {
+    let (mut caught, mut flagged, mut injected) = (0, 0, 0);
+    for seed in 0..8u64 {
+        let world = simulate(&SimConfig::new(1000, 700 + seed)).unwrap();
+        let wide = declared_wider(&world.graph, 16.0);
+        let (clean, _) = run(wide.edges(), OnlineConfig::default());
+        assert!(
+            clean.rejected().is_empty(),
+            "seed {seed}: {:?}",
+            clean.rejected()
+        );
+        let bad = inject_outliers(
+            &wide,
+            &OutlierConfig {
+                count: 40,
+                kind: OutlierKind::Random,
+                seed,
+            },
+        )
+        .unwrap();
+        let (est, _) = run(bad.graph.edges(), OnlineConfig::default());
+        let rejected: Vec<usize> = est.rejected().iter().map(|r| r.edge).collect();
+        let tp = rejected.iter().filter(|&&e| bad.is_false(e)).count();
+        println!(
+            "seed {seed}: {tp} of {} false edges quarantined, {} genuine",
+            bad.false_edges.len(),
+            rejected.len() - tp
+        );
+        caught += tp;
+        flagged += rejected.len();
+        injected += bad.false_edges.len();
+    }
+    let (precision, recall) = (
+        caught as f64 / flagged as f64,
+        caught as f64 / injected as f64,
+    );
+    println!("precision {precision:.3}, recall {recall:.3}");
+    assert!(precision >= 0.95 && recall >= 0.95, "{precision} {recall}");
 }

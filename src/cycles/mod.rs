@@ -379,6 +379,20 @@ impl IncrementalBasis {
         Some(Cycle { terms })
     }
 
+    /// The cycle a new edge `a → b` would close ([`Self::probe`]) with the least-σ² path that
+    /// avoids edge `avoid`; `None` if `a`, `b` are not connected without it. The online
+    /// quarantine asks it when cycles through an accepted loop closure keep failing: do they
+    /// close without it?
+    pub fn probe_avoiding(&mut self, a: usize, b: usize, avoid: usize) -> Option<Cycle> {
+        if avoid >= self.sigma2.len() {
+            return self.probe(a, b);
+        }
+        let kept = std::mem::replace(&mut self.sigma2[avoid], f64::INFINITY);
+        let cycle = self.probe(a, b);
+        self.sigma2[avoid] = kept;
+        cycle.filter(|c| c.terms[1..].iter().all(|t| t.edge as usize != avoid))
+    }
+
     /// Add edge `a → b` whose cycle (`closes`) or tree status was found by [`Self::probe`].
     pub fn commit(&mut self, a: usize, b: usize, sigma2: f64, closes: bool) {
         self.reserve_nodes(a.max(b) + 1);
