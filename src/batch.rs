@@ -379,6 +379,7 @@ pub fn quarantined(graph: &PoseGraph, alpha: f64) -> Result<Vec<RejectedEdge>, S
             ..ScreeningConfig::default()
         },
         quarantine: true,
+        ..crate::online::OnlineConfig::default()
     };
     let numerical = |e: crate::online::OnlineError| SolveError::Quarantine(e.to_string());
     let mut est = crate::online::OnlineEstimator::new(config).map_err(numerical)?;

@@ -184,9 +184,15 @@ impl LogContents {
             None => false,
             Some(v) => v.parse().map_err(|_| parse_err("quarantine"))?,
         };
+        // Logs written before evictions existed lack the key: they ran without them.
+        let evict = match self.metadata.get("evict") {
+            None => false,
+            Some(v) => v.parse().map_err(|_| parse_err("evict"))?,
+        };
         Ok(OnlineConfig {
             screening,
             quarantine,
+            evict,
         })
     }
 }

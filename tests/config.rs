@@ -30,6 +30,7 @@ fn configs_round_trip_through_json() {
     round_trip(OnlineConfig {
         screening: screening(),
         quarantine: false,
+        evict: true,
     });
     round_trip(BatchConfig {
         basis: BasisKind::Mcb,

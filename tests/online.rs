@@ -218,6 +218,7 @@ fn paper_preset_and_family_wise_also_agree() {
     let mut est = OnlineEstimator::new(OnlineConfig {
         screening: paper,
         quarantine: false,
+        ..OnlineConfig::default()
     })
     .unwrap();
     for e in w.graph.edges() {

@@ -160,6 +160,7 @@ fn stream(
     let mut est = OnlineEstimator::new(OnlineConfig {
         screening,
         quarantine,
+        ..OnlineConfig::default()
     })
     .unwrap();
     for e in graph.edges() {

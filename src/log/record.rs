@@ -236,6 +236,7 @@ impl Recorder {
             ("family_wise", s.family_wise.to_string()),
             ("max_hypotheses", s.max_hypotheses.to_string()),
             ("quarantine", config.quarantine.to_string()),
+            ("evict", config.evict.to_string()),
         ]
         .into_iter()
         .map(|(k, v)| (k.to_owned(), v))

@@ -499,6 +499,7 @@ fn main() -> ExitCode {
             let config = OnlineConfig {
                 screening: screening.config(),
                 quarantine: !no_quarantine,
+                ..OnlineConfig::default()
             };
             if !step_time_ok {
                 Err(format!(
