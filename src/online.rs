@@ -453,9 +453,6 @@ impl std::fmt::Debug for OnlineEstimator {
 const REORDER_MIN_ROWS: usize = 256;
 /// Reorder when L's nonzeros per row exceed this multiple of the last reordered factor's.
 const REORDER_FILL_RATIO: f64 = 1.5;
-/// Nonzeros of the renewed P_UU factor its builder is given per step: the collection comes no
-/// sooner than (expected nonzeros) / this steps after the start.
-const REORDER_NNZ_PER_STEP: f64 = 32.0;
 
 impl OnlineEstimator {
     /// A new estimator with no nodes.
@@ -1156,8 +1153,7 @@ impl OnlineEstimator {
         // is dense (complete graphs: per_row ≈ rows/2); elsewhere rows/64 is the larger.
         let delay = laplacian::MIN_DELAY
             .max(rows as u64 / 64)
-            .max(per_row.ceil() as u64)
-            .max((base.max(1.0) * rows as f64 / REORDER_NNZ_PER_STEP) as u64);
+            .max(per_row.ceil() as u64);
         let build = move || {
             let fresh = Conditioner::rebuilt(&model, &determined, 0).ok()?;
             Some((fresh, model))
