@@ -581,25 +581,27 @@ impl OnlineEstimator {
             let tested = x.chi2 / scales.0;
             if closure::fails(tested, limit) {
                 let e = c.chord() as usize;
-                let input = self.input_of[e] as usize;
-                let rejected = RejectedEdge {
-                    edge: input,
-                    from: edges[e].from(),
-                    to: edges[e].to(),
-                    test: TRANSLATION_TEST,
-                    statistic: tested,
-                    threshold: limit,
-                };
-                evicted.insert(
-                    input,
-                    Held {
-                        edge: edges[e],
-                        rejected,
-                    },
-                );
+                let (input, held) = self.held_for_translation(e, tested, limit);
+                evicted.insert(input, held);
             }
         }
         self.evict(&evicted, scales, step);
+    }
+
+    /// Graph edge `e` as an evicted loop closure that failed its translation closure test
+    /// (statistic `tested` against `limit`), keyed by its input index.
+    fn held_for_translation(&self, e: usize, tested: f64, limit: f64) -> (usize, Held) {
+        let edge = self.graph.edges()[e];
+        let input = self.input_of[e] as usize;
+        let rejected = RejectedEdge {
+            edge: input,
+            from: edge.from(),
+            to: edge.to(),
+            test: TRANSLATION_TEST,
+            statistic: tested,
+            threshold: limit,
+        };
+        (input, Held { edge, rejected })
     }
 
     /// Quarantine the accepted loop closures `evicted` (by input index) and rebuild the
@@ -714,22 +716,8 @@ impl OnlineEstimator {
             });
             let tested = own.map_or(0.0, |x| x.chi2 / scales.0);
             if blamed || closure::fails(tested, limit) {
-                let input = self.input_of[e] as usize;
-                let rejected = RejectedEdge {
-                    edge: input,
-                    from: edges[e].from(),
-                    to: edges[e].to(),
-                    test: TRANSLATION_TEST,
-                    statistic: tested,
-                    threshold: limit,
-                };
-                evicted.insert(
-                    input,
-                    Held {
-                        edge: edges[e],
-                        rejected,
-                    },
-                );
+                let (input, held) = self.held_for_translation(e, tested, limit);
+                evicted.insert(input, held);
             }
         }
         self.evict(&evicted, scales, step);
