@@ -132,6 +132,9 @@ pub struct Solution {
     pub refined: Refined,
     /// Loop closures rejected by the robust kernel ([`solve_robust`]; empty for [`solve`]).
     pub rejected: Vec<RejectedEdge>,
+    /// The noise scales of the online quarantine that [`solve_robust`] runs first (None for
+    /// [`solve`] or with the quarantine off).
+    pub noise_scales: Option<crate::online::NoiseScales>,
     /// Wall time of this solution.
     pub seconds: f64,
 }
@@ -233,6 +236,7 @@ pub fn solve(
         cost_linear,
         refined,
         rejected: Vec::new(),
+        noise_scales: None,
         seconds: t.elapsed().as_secs_f64(),
     })
 }
@@ -293,10 +297,11 @@ pub fn solve_robust(
     let mut theta0 = orient.orientations(&result.wraps(h)?);
     let mut alive: Vec<usize> = (0..edges.len()).collect();
     let mut g = graph.clone();
-    let mut rejected = if robust.quarantine {
-        quarantined(graph, robust.alpha)?
+    let (mut rejected, noise_scales) = if robust.quarantine {
+        let (r, s) = quarantine_run(graph, robust.alpha)?;
+        (r, Some(s))
     } else {
-        Vec::new()
+        (Vec::new(), None)
     };
     // The graph without the rejected edges, re-screened, and its own θ*.
     let without = |rejected: &[RejectedEdge], alive: &mut Vec<usize>| {
@@ -365,6 +370,7 @@ pub fn solve_robust(
         cost_linear,
         refined,
         rejected,
+        noise_scales,
         seconds: t.elapsed().as_secs_f64(),
     })
 }
@@ -373,6 +379,14 @@ pub fn solve_robust(
 /// with the default screening at level `alpha` (indices in `graph`'s edge order, ascending):
 /// what [`solve_robust`] leaves out before its first pass.
 pub fn quarantined(graph: &PoseGraph, alpha: f64) -> Result<Vec<RejectedEdge>, SolveError> {
+    quarantine_run(graph, alpha).map(|(rejected, _)| rejected)
+}
+
+/// [`quarantined`] with the noise scales the stream ended with.
+fn quarantine_run(
+    graph: &PoseGraph,
+    alpha: f64,
+) -> Result<(Vec<RejectedEdge>, crate::online::NoiseScales), SolveError> {
     let config = crate::online::OnlineConfig {
         screening: ScreeningConfig {
             alpha,
@@ -396,7 +410,7 @@ pub fn quarantined(graph: &PoseGraph, alpha: f64) -> Result<Vec<RejectedEdge>, S
         })
         .collect();
     out.sort_by_key(|r| r.edge);
-    Ok(out)
+    Ok((out, est.noise_scales()))
 }
 
 /// A basis cycle whose SE(2) translation closure failed its test ([`translation_failures`]).

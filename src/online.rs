@@ -263,6 +263,22 @@ pub struct Counters {
     pub renewal_waits: usize,
 }
 
+/// The noise scales the quarantine uses ([`OnlineEstimator::noise_scales`]), estimated from
+/// the accepted cycles ([`closure::Scale`]). They multiply the declared variances in the
+/// quarantine's tests only; the screening that determines γ keeps the declared noise.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct NoiseScales {
+    /// s_θ: the angle variances' factor (1 before 50 samples).
+    pub angle: f64,
+    /// Cycle tests s_θ was estimated from: the angle residuals of cycles with a sharp angle
+    /// (conditional sd < 0.1) that did not fail by far, at arrival and at re-tests.
+    pub angle_samples: usize,
+    /// s: the translation closures' factor (1 before 50 samples).
+    pub translation: f64,
+    /// Translation closures s was estimated from (those that did not fail by far).
+    pub translation_samples: usize,
+}
+
 /// Why an input or query was refused. A refused edge leaves the estimator unchanged.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum OnlineError {
@@ -1252,6 +1268,16 @@ impl OnlineEstimator {
         match self.warm {
             Some((t, _)) if self.scale.len() < closure::SCALE_MIN_CYCLES => t,
             _ => self.scale.value(),
+        }
+    }
+
+    /// Both noise scales with the number of samples each was estimated from.
+    pub fn noise_scales(&self) -> NoiseScales {
+        NoiseScales {
+            angle: self.angle_scale(),
+            angle_samples: self.angle_scale.len(),
+            translation: self.translation_scale(),
+            translation_samples: self.scale.len(),
         }
     }
 

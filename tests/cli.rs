@@ -331,6 +331,17 @@ fn stream_json_reports_latency_and_matches_screen() {
     }
     let l = &v["latency_us"]["all"];
     assert!(l["p50"].as_f64() <= l["p99"].as_f64() && l["p99"].as_f64() <= l["max"].as_f64());
+    // The quarantine's noise scales are reported, within their range.
+    for (scale, floor) in [("angle", 0.25), ("translation", 0.01)] {
+        let x = v["noise_scales"][scale].as_f64().unwrap();
+        assert!((floor..=1.0).contains(&x), "{scale} {x}");
+        assert!(
+            v["noise_scales"][format!("{scale}_samples")]
+                .as_u64()
+                .unwrap()
+                > 0
+        );
+    }
     assert!(v["peak_rss_bytes"].as_u64().unwrap() > 0);
     assert_eq!(
         v["steps"].as_u64().unwrap(),

@@ -225,6 +225,16 @@ fn random_false_edges_are_caught_when_the_declared_noise_is_too_wide() {
             "seed {seed}: {:?}",
             clean.rejected()
         );
+        // The scales see the 16× too-wide declared variances: the translation scale near
+        // 1/16, the angle scale at its floor.
+        let s = clean.noise_scales();
+        println!("seed {seed}: noise scales {s:?}");
+        assert!(
+            s.translation_samples >= 50 && s.angle_samples >= 50,
+            "{s:?}"
+        );
+        assert!(s.translation > 1.0 / 64.0 && s.translation < 0.25, "{s:?}");
+        assert_eq!(s.angle, so2lin::closure::ANGLE_SCALE_FLOOR, "{s:?}");
         let bad = inject_outliers(
             &wide,
             &OutlierConfig {

@@ -737,6 +737,14 @@ pub(crate) fn print_rejected(rejected: &[so2lin::batch::RejectedEdge], what: &st
     }
 }
 
+/// Print the quarantine's noise scales (one line).
+pub(crate) fn print_noise_scales(s: &so2lin::online::NoiseScales) {
+    println!(
+        "noise scales from the accepted cycles (quarantine tests only; the screening keeps the declared noise): angle {:.3} (from {} cycle tests), translation {:.3} (from {})",
+        s.angle, s.angle_samples, s.translation, s.translation_samples
+    );
+}
+
 /// What a success bound or p-value is stated for: "all N edges accepted, none rejected", or
 /// "the N accepted edges; R rejected edges left out".
 pub(crate) fn accepted_words(accepted: usize, rejected: usize) -> String {

@@ -141,6 +141,7 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
                     "cost_refined": s.refined.cost(),
                     "cost_refined_all_edges": args.refine.residual.cost(&graph, &s.refined.poses),
                     "rejected_edges": s.rejected,
+                    "noise_scales": s.noise_scales,
                     "refine_costs": s.refined.costs,
                     "iterations": s.refined.iterations,
                     "converged": s.refined.converged,
@@ -217,6 +218,9 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
                 );
                 crate::print_rejected(&best.rejected, "rejected");
             }
+        }
+        if let Some(scales) = &best.noise_scales {
+            crate::print_noise_scales(scales);
         }
     }
     if let Some((b, s)) = &baseline {

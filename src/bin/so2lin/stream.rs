@@ -209,6 +209,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "quarantined": c.quarantined,
             "readmitted": c.readmitted,
             "rejected_edges": rejected,
+            "noise_scales": est.noise_scales(),
             "rescreens": c.rescreens,
             "reorders": c.reorders,
             "latency_us": latency,
@@ -279,6 +280,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         println!("  #{:<3} χ² = {:<12.4} p = {:.4}", k + 1, h.chi2, h.p_value);
     }
     crate::print_rejected(&rejected, "quarantined (kept out of the estimate)");
+    crate::print_noise_scales(&est.noise_scales());
     if c.readmitted > 0 {
         println!(
             "{} re-admitted after a later re-test",
