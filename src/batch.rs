@@ -36,9 +36,10 @@
 //! met before any later cycle is routed through it; the passes then catch what slipped through.
 //!
 //! After a pass that rejected edges, the graph without them is screened again and solved from
-//! its own θ* by a new pass (at most five passes). Then the loop closures the quarantine
-//! pass left out whose `χ²_e ≤ Φ` (d = 3) at the robust poses are restored (a genuine edge
-//! quarantined online because its cycle then ran through a false edge fits the solution);
+//! its own θ* by a new pass (at most five passes). Then every rejected loop closure (by the
+//! quarantine or by a pass) whose `χ²_e ≤ Φ` (d = 3) at the robust poses is restored (a
+//! genuine edge quarantined online because its cycle then ran through a false edge fits the
+//! solution, and so does one an early pass rejected at poses the later passes corrected);
 //! the final poses are the plain refinement on the edges kept: on clean data, the ordinary
 //! least-squares optimum.
 //!
@@ -344,12 +345,12 @@ pub fn solve_robust(
         rejected.sort_by_key(|r| r.edge);
         (g, theta0) = without(&rejected, &mut alive)?;
     }
-    // Loop closures quarantined online whose SE(2) χ²_e at the robust solution is within Φ
-    // are restored (module docs): the online tests saw them through cycles that the
-    // solution no longer needs.
-    let chi2: Vec<f64> = crate::refine::edge_costs(graph, &x).collect();
+    // Rejected loop closures whose SE(2) χ²_e at the robust solution is within Φ are
+    // restored (module docs): the online tests saw them through cycles that the solution no
+    // longer needs, and an earlier pass through poses that later passes corrected.
+    let chi2: Vec<f64> = refine.residual.edge_costs(graph, &x).collect();
     let before = rejected.len();
-    rejected.retain(|r| r.test == "se2_chi2" || chi2[r.edge].is_nan() || chi2[r.edge] > phi.1);
+    rejected.retain(|r| chi2[r.edge].is_nan() || chi2[r.edge] > phi.1);
     if rejected.len() < before {
         let mut keep = vec![1.0; edges.len()];
         for r in &rejected {

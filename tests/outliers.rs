@@ -249,3 +249,51 @@ fn the_kernel_leaves_clean_datasets_alone() {
         assert!((a - b).abs() <= 1e-6 * a, "{name}: {a} vs {b}");
     }
 }
+
+/// INTEL with 10 and 100 random false loop closures (seeds 1–3, datasets required), streamed
+/// with the default online estimator in robot order: the quarantined set's precision and
+/// recall. The path-triggered evictions (on by default) took the precision at K = 100 from
+/// 0.82 to 1.00 (measured 298/298 quarantined edges false, 298 of 300 false edges caught);
+/// this guards ≥ 0.95 for both, pooled over the seeds.
+#[test]
+fn intel_stream_quarantines_random_false_edges() {
+    use so2lin::online::{OnlineConfig, OnlineEstimator, robot_order_indices};
+    let Some(path) = common::dataset("intel.g2o") else {
+        return;
+    };
+    let (g, _) = so2lin::io::read_graph(&path, Default::default()).unwrap();
+    for k in [10, 100] {
+        let (mut caught, mut flagged, mut injected) = (0, 0, 0);
+        for seed in 1..=3u64 {
+            let c = inject_outliers(
+                &g,
+                &OutlierConfig {
+                    count: k,
+                    kind: OutlierKind::Random,
+                    seed,
+                },
+            )
+            .unwrap();
+            let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+            let order = robot_order_indices(c.graph.edges());
+            for &i in &order {
+                est.add_edge(c.graph.edges()[i]).unwrap();
+            }
+            let rejected: Vec<usize> = est.rejected().iter().map(|r| order[r.edge]).collect();
+            caught += rejected.iter().filter(|&&e| c.is_false(e)).count();
+            flagged += rejected.len();
+            injected += c.false_edges.len();
+        }
+        let (precision, recall) = (
+            caught as f64 / flagged as f64,
+            caught as f64 / injected as f64,
+        );
+        println!(
+            "INTEL K = {k}: precision {precision:.3} ({caught}/{flagged}), recall {recall:.3} ({caught}/{injected})"
+        );
+        assert!(
+            precision >= 0.95 && recall >= 0.95,
+            "K = {k}: {precision} {recall}"
+        );
+    }
+}

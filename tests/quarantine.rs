@@ -208,10 +208,10 @@ fn declared_wider(g: &PoseGraph, factor: f64) -> PoseGraph {
 /// the first cycles on (before 50 cycles no noise scale is estimated, and a false edge
 /// closing a long cycle passes both tests at the declared noise): the angle noise scale
 /// sharpens the angle test and the translation closures' heading noise. With the defaults
-/// (no evictions) the pooled precision and recall were measured at 0.907 and 0.641 — short of
-/// the issue's 0.95, which is why issue 11 stays open; this guards what is reached, and a
-/// clean copy of each world quarantines nothing. (With [`OnlineConfig::evict`] on, the same
-/// worlds gave 0.746 / 0.791: evictions are not ready to be the default.)
+/// (evictions by the path-triggered examination on) the pooled precision and recall were
+/// measured at 0.939 and 0.716 (without evictions 0.907 / 0.641) — short of the issue's 0.95,
+/// which is why issue 11 stays open; this guards what is reached, and a clean copy of each
+/// world quarantines nothing.
 #[test]
 fn random_false_edges_are_caught_when_the_declared_noise_is_too_wide() {
     let config = OnlineConfig::default();
@@ -261,5 +261,5 @@ fn random_false_edges_are_caught_when_the_declared_noise_is_too_wide() {
         caught as f64 / injected as f64,
     );
     println!("precision {precision:.3}, recall {recall:.3}");
-    assert!(precision >= 0.85 && recall >= 0.6, "{precision} {recall}");
+    assert!(precision >= 0.9 && recall >= 0.68, "{precision} {recall}");
 }
