@@ -10,7 +10,10 @@
 //!   the root: a row near the end of the order touches a few rows of R only;
 //! - **a removed row** is the same with hyperbolic rotations (`ρ = sqrt(R_kk² − w_k²)`);
 //! - **a changed right-hand side** of a row (a wrap that changed) moves d only:
-//!   `d ← d + R⁻ᵀ a Δβ`, one sparse forward solve along the same path;
+//!   `d ← d + R⁻ᵀ a Δβ`, one sparse forward solve along the same path; for the last row
+//!   added (while no row was added or removed since), `d_k += g_k Δβ` with the gains
+//!   `g_k = s_k Π_{j<k} c_j` its rotations recorded, without walking R again
+//!   ([`SqrtInfo::shift_last_row`]);
 //! - **a new variable** is appended at the end of the order with an empty row.
 //!
 //! Reading: `x = R⁻¹ d` by back-substitution. The last variable is `d_n / R_nn` (O(1)); one
@@ -50,6 +53,11 @@ pub(crate) struct SqrtInfo<const K: usize> {
     spare_row: Vec<(u32, f64)>,
     x: Vec<f64>,
     path: Vec<u32>,
+    /// `(position, g)` for the last row added: `d_k` moves by `g Δβ` when that row's
+    /// right-hand side moves by `Δβ` (see [`Self::shift_last_row`]).
+    gains: Vec<(u32, f64)>,
+    /// Whether `gains` still describe R (no row added or removed since).
+    gains_valid: bool,
 }
 
 impl<const K: usize> Default for SqrtInfo<K> {
@@ -66,6 +74,8 @@ impl<const K: usize> Default for SqrtInfo<K> {
             spare_row: Vec::new(),
             x: Vec::new(),
             path: Vec::new(),
+            gains: Vec::new(),
+            gains_valid: false,
         }
     }
 }
@@ -136,6 +146,10 @@ impl<const K: usize> SqrtInfo<K> {
         let mut w = std::mem::take(&mut self.w);
         let mut next = std::mem::take(&mut self.w_next);
         let mut head = 0;
+        self.gains.clear();
+        self.gains_valid = !downdate;
+        // The part of the row's right-hand side still to rotate, per unit of β (updates).
+        let mut gain = 1.0;
         let result = loop {
             while head < w.len() && w[head].1 == 0.0 {
                 head += 1;
@@ -163,6 +177,10 @@ impl<const K: usize> SqrtInfo<K> {
                 (r / rho, wk / rho, rho)
             };
             self.diag[k] = rho;
+            if !downdate {
+                self.gains.push((k as u32, s * gain));
+                gain *= c;
+            }
             next.clear();
             if !downdate && is_subset(&w[head + 1..], &self.rows[k]) {
                 // No fill (the common case once the row has met its path): rotate row k in
@@ -253,7 +271,48 @@ impl<const K: usize> SqrtInfo<K> {
         };
         self.w = w;
         self.w_next = next;
+        self.gains_valid &= result.is_ok();
         result
+    }
+
+    /// Move the right-hand side of the last row added by `Δβ`, when no row was added or
+    /// removed since: `d_k += g_k Δβ` on that row's path, with `g_k = s_k Π_{j<k} c_j` from
+    /// its rotations (the rotation is linear in `(d, β)`, so this is what rotating the row in
+    /// with `β + Δβ` would have given; it equals [`Self::shift_rhs`], `R⁻ᵀ a Δβ`, without
+    /// walking the path again). False (nothing done) when the gains are stale.
+    pub fn shift_last_row(&mut self, delta: [f64; K]) -> bool {
+        if !self.gains_valid {
+            return false;
+        }
+        for &(k, g) in &self.gains {
+            let dk = &mut self.d[k as usize];
+            for q in 0..K {
+                dk[q] += g * delta[q];
+            }
+        }
+        true
+    }
+
+    /// The same factor for the right-hand sides `columns` of this one, with R and d scaled by
+    /// `scale` (the factor of the same rows weighted by `scale²`).
+    pub fn columns<const M: usize>(&self, columns: [usize; M], scale: f64) -> SqrtInfo<M> {
+        let mut f = SqrtInfo::<M>::new();
+        f.pos_of.clone_from(&self.pos_of);
+        f.var_at.clone_from(&self.var_at);
+        f.diag = self.diag.iter().map(|&r| scale * r).collect();
+        f.rows = self
+            .rows
+            .iter()
+            .map(|row| row.iter().map(|&(p, v)| (p, scale * v)).collect())
+            .collect();
+        f.d = self
+            .d
+            .iter()
+            .map(|dk| columns.map(|q| scale * dk[q]))
+            .collect();
+        f.nnz = self.nnz;
+        f.x = vec![0.0; self.x.len()];
+        f
     }
 
     /// Change the right-hand side of an existing row `a` by `Δβ`: `d ← d + R⁻ᵀ a Δβ`.
@@ -353,6 +412,22 @@ impl<const K: usize> SqrtInfo<K> {
     /// One variable's value for every right-hand side: back-substitution along its
     /// elimination-tree path (O(1) for the last variable).
     pub fn value(&mut self, v: usize) -> [f64; K] {
+        let p = self.path_of(v);
+        let mut out = [0.0; K];
+        for (q, o) in out.iter_mut().enumerate() {
+            *o = self.back_along_path(p, q);
+        }
+        out
+    }
+
+    /// One variable's value for right-hand side `q` only.
+    pub fn value_of(&mut self, v: usize, q: usize) -> f64 {
+        let p = self.path_of(v);
+        self.back_along_path(p, q)
+    }
+
+    /// The elimination-tree path of variable v into `self.path`; its position.
+    fn path_of(&mut self, v: usize) -> usize {
         let p = self.pos_of[v] as usize;
         self.path.clear();
         let mut k = p;
@@ -363,19 +438,21 @@ impl<const K: usize> SqrtInfo<K> {
                 None => break,
             }
         }
-        let mut out = [0.0; K];
-        for (q, o) in out.iter_mut().enumerate() {
-            for &k in self.path.iter().rev() {
-                let k = k as usize;
-                let s: f64 = self.rows[k]
-                    .iter()
-                    .map(|&(j, a)| a * self.x[j as usize])
-                    .sum();
-                self.x[k] = (self.d[k][q] - s) / self.diag[k];
-            }
-            *o = self.x[p];
+        p
+    }
+
+    /// Back-substitution of right-hand side q along `self.path` (from [`Self::path_of`]):
+    /// the value at position p, its first element.
+    fn back_along_path(&mut self, p: usize, q: usize) -> f64 {
+        for &k in self.path.iter().rev() {
+            let k = k as usize;
+            let s: f64 = self.rows[k]
+                .iter()
+                .map(|&(j, a)| a * self.x[j as usize])
+                .sum();
+            self.x[k] = (self.d[k][q] - s) / self.diag[k];
         }
-        out
+        self.x[p]
     }
 
     /// Variance of the combination `aᵀx`: `aᵀ(AᵀA)⁻¹a = ‖R⁻ᵀ a‖²` (one forward solve along
@@ -715,6 +792,52 @@ mod tests {
         let (a, b) = rows.pop().expect("the extra row");
         g.remove_row(&a, [b]).unwrap();
         check(&mut g, &rows);
+    }
+
+    /// Moving the last row's right-hand side by its rotations' gains is moving it by a
+    /// forward solve; a removed row makes the gains stale. Splitting right-hand sides off
+    /// with a scale is the factor of the rows weighted by the scale squared.
+    #[test]
+    fn the_last_rows_gains_shift_its_right_hand_side() {
+        type Row = ([(usize, f64); 2], [f64; 2]);
+        let rows: Vec<Row> = (0..40)
+            .map(|i| {
+                let (a, b) = (i % 12, (i * 7 + 3) % 12);
+                let w = 1.0 + (i % 5) as f64;
+                ([(a, -w), (b, w)], [0.1 * i as f64, 1.0 - 0.05 * i as f64])
+            })
+            .filter(|([(a, _), (b, _)], _)| a != b)
+            .collect();
+        let mut f = SqrtInfo::<2>::new();
+        let mut g = SqrtInfo::<2>::new();
+        for v in 0..12 {
+            f.push_variable(v);
+            g.push_variable(v);
+        }
+        for v in 0..12 {
+            f.add_row(&[(v, 1.0)], [0.0; 2]);
+            g.add_row(&[(v, 1.0)], [0.0; 2]);
+        }
+        for (a, b) in &rows {
+            f.add_row(a, *b);
+            g.add_row(a, *b);
+        }
+        let (last, beta) = rows[rows.len() - 1];
+        assert!(f.shift_last_row([0.5, -2.0]));
+        g.shift_rhs(&last, [0.5, -2.0]);
+        for q in 0..2 {
+            for (x, y) in f.solve(q).iter().zip(g.solve(q)) {
+                assert!((x - y).abs() < 1e-12, "{x} vs {y}");
+            }
+        }
+        let scaled = f.columns([1], 3.0);
+        for (x, y) in scaled.solve(0).iter().zip(f.solve(1)) {
+            assert!((x - y).abs() < 1e-12, "{x} vs {y}");
+        }
+        let mut scaled = scaled;
+        assert!((9.0 * scaled.marginal(&[(5, 1.0)]) - f.marginal(&[(5, 1.0)])).abs() < 1e-12);
+        f.remove_row(&last, [beta[0] + 0.5, beta[1] - 2.0]).unwrap();
+        assert!(!f.shift_last_row([1.0, 1.0]));
     }
 
     /// A zero pivot (a variable no row touches) makes the Cholesky give up, not panic.
