@@ -7,7 +7,9 @@
 //! - **a new row** `(a, β)` is rotated into R by Givens rotations
 //!   (`ρ = hypot(R_kk, w_k)`, `c = R_kk/ρ`, `s = w_k/ρ`; `R_k ← c R_k + s w`, `w ← c w − s R_k`,
 //!   and likewise `d_k`, `β`) along the elimination-tree path from the row's first variable to
-//!   the root: a row near the end of the order touches a few rows of R only;
+//!   the root: a row near the end of the order touches a few rows of R only. Row k is
+//!   rotated in place when the row's remaining positions are its own, or lie beyond its last
+//!   (fill from a newer node's column, appended); otherwise it is rebuilt by a merge;
 //! - **a removed row** is the same with hyperbolic rotations (`ρ = sqrt(R_kk² − w_k²)`);
 //! - **a changed right-hand side** of a row (a wrap that changed) moves d only:
 //!   `d ← d + R⁻ᵀ a Δβ`, one sparse forward solve along the same path; for the last row
@@ -182,11 +184,18 @@ impl<const K: usize> SqrtInfo<K> {
                 gain *= c;
             }
             next.clear();
-            if !downdate && is_subset(&w[head + 1..], &self.rows[k]) {
-                // No fill (the common case once the row has met its path): rotate row k in
-                // place, and the row goes on with row k's pattern.
+            let tail = if downdate {
+                None
+            } else {
+                fill_beyond(&w[head + 1..], &self.rows[k]).map(|t| head + 1 + t)
+            };
+            if let Some(tail) = tail {
+                // No fill (the common case once the row has met its path), or fill beyond the
+                // row's last position only (a newer node's column, the usual fill): rotate row
+                // k in place and append the fill; the row goes on with row k's pattern.
                 let mut j = head + 1;
-                for e in self.rows[k].iter_mut() {
+                let row = &mut self.rows[k];
+                for e in row.iter_mut() {
                     let wj = match w.get(j) {
                         Some(&(pj, v)) if pj == e.0 => {
                             j += 1;
@@ -201,6 +210,16 @@ impl<const K: usize> SqrtInfo<K> {
                         next.push((e.0, wn));
                     }
                 }
+                debug_assert_eq!(j, tail);
+                for &(p, wj) in &w[tail..] {
+                    let rkj = 0.0;
+                    row.push((p, c * rkj + s * wj));
+                    let wn = c * wj - s * rkj;
+                    if wn != 0.0 {
+                        next.push((p, wn));
+                    }
+                }
+                self.nnz += w.len() - tail;
                 let dk = &mut self.d[k];
                 for q in 0..K {
                     let dn = c * dk[q] + s * beta[q];
@@ -580,22 +599,24 @@ impl<const K: usize> SqrtInfo<K> {
     }
 }
 
-/// Whether every position of `a` is a position of `b` (both ascending).
-fn is_subset(a: &[(u32, f64)], b: &[(u32, f64)]) -> bool {
-    if a.len() > b.len() {
-        return false;
-    }
+/// Where the positions of `a` stop being positions of `b` (both ascending), when every later
+/// one lies beyond `b`'s last: `a.len()` when `a` is a subset of `b`; None when some position
+/// of `a` falls between positions of `b` (fill inside the row).
+fn fill_beyond(a: &[(u32, f64)], b: &[(u32, f64)]) -> Option<usize> {
     let mut j = 0;
-    for &(p, _) in a {
+    for (i, &(p, _)) in a.iter().enumerate() {
         while j < b.len() && b[j].0 < p {
             j += 1;
         }
-        if j == b.len() || b[j].0 != p {
-            return false;
+        if j == b.len() {
+            return Some(i);
+        }
+        if b[j].0 != p {
+            return None;
         }
         j += 1;
     }
-    true
+    Some(a.len())
 }
 
 /// A fill-reducing order of the variables `0..n` of a graph with the given edges (approximate
@@ -838,6 +859,19 @@ mod tests {
         assert!((9.0 * scaled.marginal(&[(5, 1.0)]) - f.marginal(&[(5, 1.0)])).abs() < 1e-12);
         f.remove_row(&last, [beta[0] + 0.5, beta[1] - 2.0]).unwrap();
         assert!(!f.shift_last_row([1.0, 1.0]));
+    }
+
+    #[test]
+    fn fill_beyond_finds_where_the_fill_starts() {
+        let row = |ps: &[u32]| ps.iter().map(|&p| (p, 1.0)).collect::<Vec<_>>();
+        let b = row(&[3, 5, 8]);
+        assert_eq!(fill_beyond(&row(&[5, 8]), &b), Some(2));
+        assert_eq!(fill_beyond(&row(&[]), &b), Some(0));
+        assert_eq!(fill_beyond(&row(&[3, 8, 9, 12]), &b), Some(2));
+        assert_eq!(fill_beyond(&row(&[9]), &b), Some(0));
+        assert_eq!(fill_beyond(&row(&[4, 9]), &b), None);
+        assert_eq!(fill_beyond(&row(&[5, 7]), &b), None);
+        assert_eq!(fill_beyond(&row(&[1]), &row(&[])), Some(0));
     }
 
     /// A zero pivot (a variable no row touches) makes the Cholesky give up, not panic.
