@@ -7,10 +7,15 @@
 //! - **a new row** `(a, β)` is rotated into R by Givens rotations
 //!   (`ρ = hypot(R_kk, w_k)`, `c = R_kk/ρ`, `s = w_k/ρ`; `R_k ← c R_k + s w`, `w ← c w − s R_k`,
 //!   and likewise `d_k`, `β`) along the elimination-tree path from the row's first variable to
-//!   the root: a row near the end of the order touches a few rows of R only;
+//!   the root: a row near the end of the order touches a few rows of R only. Row k is
+//!   rotated in place when the row's remaining positions are its own, or lie beyond its last
+//!   (fill from a newer node's column, appended); otherwise it is rebuilt by a merge;
 //! - **a removed row** is the same with hyperbolic rotations (`ρ = sqrt(R_kk² − w_k²)`);
 //! - **a changed right-hand side** of a row (a wrap that changed) moves d only:
-//!   `d ← d + R⁻ᵀ a Δβ`, one sparse forward solve along the same path;
+//!   `d ← d + R⁻ᵀ a Δβ`, one sparse forward solve along the same path; for the last row
+//!   added (while no row was added or removed since), `d_k += g_k Δβ` with the gains
+//!   `g_k = s_k Π_{j<k} c_j` its rotations recorded, without walking R again
+//!   ([`SqrtInfo::shift_last_row`]);
 //! - **a new variable** is appended at the end of the order with an empty row.
 //!
 //! Reading: `x = R⁻¹ d` by back-substitution. The last variable is `d_n / R_nn` (O(1)); one
@@ -50,6 +55,11 @@ pub(crate) struct SqrtInfo<const K: usize> {
     spare_row: Vec<(u32, f64)>,
     x: Vec<f64>,
     path: Vec<u32>,
+    /// `(position, g)` for the last row added: `d_k` moves by `g Δβ` when that row's
+    /// right-hand side moves by `Δβ` (see [`Self::shift_last_row`]).
+    gains: Vec<(u32, f64)>,
+    /// Whether `gains` still describe R (no row added or removed since).
+    gains_valid: bool,
 }
 
 impl<const K: usize> Default for SqrtInfo<K> {
@@ -66,6 +76,8 @@ impl<const K: usize> Default for SqrtInfo<K> {
             spare_row: Vec::new(),
             x: Vec::new(),
             path: Vec::new(),
+            gains: Vec::new(),
+            gains_valid: false,
         }
     }
 }
@@ -136,6 +148,10 @@ impl<const K: usize> SqrtInfo<K> {
         let mut w = std::mem::take(&mut self.w);
         let mut next = std::mem::take(&mut self.w_next);
         let mut head = 0;
+        self.gains.clear();
+        self.gains_valid = !downdate;
+        // The part of the row's right-hand side still to rotate, per unit of β (updates).
+        let mut gain = 1.0;
         let result = loop {
             while head < w.len() && w[head].1 == 0.0 {
                 head += 1;
@@ -163,16 +179,33 @@ impl<const K: usize> SqrtInfo<K> {
                 (r / rho, wk / rho, rho)
             };
             self.diag[k] = rho;
+            if !downdate {
+                self.gains.push((k as u32, s * gain));
+                gain *= c;
+            }
             next.clear();
-            if !downdate && is_subset(&w[head + 1..], &self.rows[k]) {
-                // No fill (the common case once the row has met its path): rotate row k in
-                // place, and the row goes on with row k's pattern.
+            if !downdate {
+                // No fill (the common case once the row has met its path), or fill beyond the
+                // row's last position only (a newer node's column, the usual fill): rotate row
+                // k in place and append the fill; the row goes on with row k's pattern. A
+                // position of the row that falls inside row k's (fill inside) is found on the
+                // way: row k is restored from a copy and rebuilt by the merge below. (A copy is
+                // cheaper than checking the patterns first: that check was half of this
+                // function's time.)
+                let row = &mut self.rows[k];
+                self.spare_row.clear();
+                self.spare_row.extend_from_slice(row);
                 let mut j = head + 1;
-                for e in self.rows[k].iter_mut() {
+                let mut inside = false;
+                for e in row.iter_mut() {
                     let wj = match w.get(j) {
                         Some(&(pj, v)) if pj == e.0 => {
                             j += 1;
                             v
+                        }
+                        Some(&(pj, _)) if pj < e.0 => {
+                            inside = true;
+                            break;
                         }
                         _ => 0.0,
                     };
@@ -183,15 +216,28 @@ impl<const K: usize> SqrtInfo<K> {
                         next.push((e.0, wn));
                     }
                 }
-                let dk = &mut self.d[k];
-                for q in 0..K {
-                    let dn = c * dk[q] + s * beta[q];
-                    beta[q] = c * beta[q] - s * dk[q];
-                    dk[q] = dn;
+                if !inside {
+                    for &(p, wj) in &w[j..] {
+                        let rkj = 0.0;
+                        row.push((p, c * rkj + s * wj));
+                        let wn = c * wj - s * rkj;
+                        if wn != 0.0 {
+                            next.push((p, wn));
+                        }
+                    }
+                    self.nnz += w.len() - j;
+                    let dk = &mut self.d[k];
+                    for q in 0..K {
+                        let dn = c * dk[q] + s * beta[q];
+                        beta[q] = c * beta[q] - s * dk[q];
+                        dk[q] = dn;
+                    }
+                    std::mem::swap(&mut w, &mut next);
+                    head = 0;
+                    continue;
                 }
-                std::mem::swap(&mut w, &mut next);
-                head = 0;
-                continue;
+                std::mem::swap(row, &mut self.spare_row);
+                next.clear();
             }
             let old = std::mem::take(&mut self.rows[k]);
             let mut row = std::mem::take(&mut self.spare_row);
@@ -253,7 +299,48 @@ impl<const K: usize> SqrtInfo<K> {
         };
         self.w = w;
         self.w_next = next;
+        self.gains_valid &= result.is_ok();
         result
+    }
+
+    /// Move the right-hand side of the last row added by `Δβ`, when no row was added or
+    /// removed since: `d_k += g_k Δβ` on that row's path, with `g_k = s_k Π_{j<k} c_j` from
+    /// its rotations (the rotation is linear in `(d, β)`, so this is what rotating the row in
+    /// with `β + Δβ` would have given; it equals [`Self::shift_rhs`], `R⁻ᵀ a Δβ`, without
+    /// walking the path again). False (nothing done) when the gains are stale.
+    pub fn shift_last_row(&mut self, delta: [f64; K]) -> bool {
+        if !self.gains_valid {
+            return false;
+        }
+        for &(k, g) in &self.gains {
+            let dk = &mut self.d[k as usize];
+            for q in 0..K {
+                dk[q] += g * delta[q];
+            }
+        }
+        true
+    }
+
+    /// The same factor for the right-hand sides `columns` of this one, with R and d scaled by
+    /// `scale` (the factor of the same rows weighted by `scale²`).
+    pub fn columns<const M: usize>(&self, columns: [usize; M], scale: f64) -> SqrtInfo<M> {
+        let mut f = SqrtInfo::<M>::new();
+        f.pos_of.clone_from(&self.pos_of);
+        f.var_at.clone_from(&self.var_at);
+        f.diag = self.diag.iter().map(|&r| scale * r).collect();
+        f.rows = self
+            .rows
+            .iter()
+            .map(|row| row.iter().map(|&(p, v)| (p, scale * v)).collect())
+            .collect();
+        f.d = self
+            .d
+            .iter()
+            .map(|dk| columns.map(|q| scale * dk[q]))
+            .collect();
+        f.nnz = self.nnz;
+        f.x = vec![0.0; self.x.len()];
+        f
     }
 
     /// Change the right-hand side of an existing row `a` by `Δβ`: `d ← d + R⁻ᵀ a Δβ`.
@@ -353,6 +440,22 @@ impl<const K: usize> SqrtInfo<K> {
     /// One variable's value for every right-hand side: back-substitution along its
     /// elimination-tree path (O(1) for the last variable).
     pub fn value(&mut self, v: usize) -> [f64; K] {
+        let p = self.path_of(v);
+        let mut out = [0.0; K];
+        for (q, o) in out.iter_mut().enumerate() {
+            *o = self.back_along_path(p, q);
+        }
+        out
+    }
+
+    /// One variable's value for right-hand side `q` only.
+    pub fn value_of(&mut self, v: usize, q: usize) -> f64 {
+        let p = self.path_of(v);
+        self.back_along_path(p, q)
+    }
+
+    /// The elimination-tree path of variable v into `self.path`; its position.
+    fn path_of(&mut self, v: usize) -> usize {
         let p = self.pos_of[v] as usize;
         self.path.clear();
         let mut k = p;
@@ -363,19 +466,21 @@ impl<const K: usize> SqrtInfo<K> {
                 None => break,
             }
         }
-        let mut out = [0.0; K];
-        for (q, o) in out.iter_mut().enumerate() {
-            for &k in self.path.iter().rev() {
-                let k = k as usize;
-                let s: f64 = self.rows[k]
-                    .iter()
-                    .map(|&(j, a)| a * self.x[j as usize])
-                    .sum();
-                self.x[k] = (self.d[k][q] - s) / self.diag[k];
-            }
-            *o = self.x[p];
+        p
+    }
+
+    /// Back-substitution of right-hand side q along `self.path` (from [`Self::path_of`]):
+    /// the value at position p, its first element.
+    fn back_along_path(&mut self, p: usize, q: usize) -> f64 {
+        for &k in self.path.iter().rev() {
+            let k = k as usize;
+            let s: f64 = self.rows[k]
+                .iter()
+                .map(|&(j, a)| a * self.x[j as usize])
+                .sum();
+            self.x[k] = (self.d[k][q] - s) / self.diag[k];
         }
-        out
+        self.x[p]
     }
 
     /// Variance of the combination `aᵀx`: `aᵀ(AᵀA)⁻¹a = ‖R⁻ᵀ a‖²` (one forward solve along
@@ -501,24 +606,6 @@ impl<const K: usize> SqrtInfo<K> {
         f.reset_rhs(rows);
         Some(f)
     }
-}
-
-/// Whether every position of `a` is a position of `b` (both ascending).
-fn is_subset(a: &[(u32, f64)], b: &[(u32, f64)]) -> bool {
-    if a.len() > b.len() {
-        return false;
-    }
-    let mut j = 0;
-    for &(p, _) in a {
-        while j < b.len() && b[j].0 < p {
-            j += 1;
-        }
-        if j == b.len() || b[j].0 != p {
-            return false;
-        }
-        j += 1;
-    }
-    true
 }
 
 /// A fill-reducing order of the variables `0..n` of a graph with the given edges (approximate
@@ -715,6 +802,52 @@ mod tests {
         let (a, b) = rows.pop().expect("the extra row");
         g.remove_row(&a, [b]).unwrap();
         check(&mut g, &rows);
+    }
+
+    /// Moving the last row's right-hand side by its rotations' gains is moving it by a
+    /// forward solve; a removed row makes the gains stale. Splitting right-hand sides off
+    /// with a scale is the factor of the rows weighted by the scale squared.
+    #[test]
+    fn the_last_rows_gains_shift_its_right_hand_side() {
+        type Row = ([(usize, f64); 2], [f64; 2]);
+        let rows: Vec<Row> = (0..40)
+            .map(|i| {
+                let (a, b) = (i % 12, (i * 7 + 3) % 12);
+                let w = 1.0 + (i % 5) as f64;
+                ([(a, -w), (b, w)], [0.1 * i as f64, 1.0 - 0.05 * i as f64])
+            })
+            .filter(|([(a, _), (b, _)], _)| a != b)
+            .collect();
+        let mut f = SqrtInfo::<2>::new();
+        let mut g = SqrtInfo::<2>::new();
+        for v in 0..12 {
+            f.push_variable(v);
+            g.push_variable(v);
+        }
+        for v in 0..12 {
+            f.add_row(&[(v, 1.0)], [0.0; 2]);
+            g.add_row(&[(v, 1.0)], [0.0; 2]);
+        }
+        for (a, b) in &rows {
+            f.add_row(a, *b);
+            g.add_row(a, *b);
+        }
+        let (last, beta) = rows[rows.len() - 1];
+        assert!(f.shift_last_row([0.5, -2.0]));
+        g.shift_rhs(&last, [0.5, -2.0]);
+        for q in 0..2 {
+            for (x, y) in f.solve(q).iter().zip(g.solve(q)) {
+                assert!((x - y).abs() < 1e-12, "{x} vs {y}");
+            }
+        }
+        let scaled = f.columns([1], 3.0);
+        for (x, y) in scaled.solve(0).iter().zip(f.solve(1)) {
+            assert!((x - y).abs() < 1e-12, "{x} vs {y}");
+        }
+        let mut scaled = scaled;
+        assert!((9.0 * scaled.marginal(&[(5, 1.0)]) - f.marginal(&[(5, 1.0)])).abs() < 1e-12);
+        f.remove_row(&last, [beta[0] + 0.5, beta[1] - 2.0]).unwrap();
+        assert!(!f.shift_last_row([1.0, 1.0]));
     }
 
     /// A zero pivot (a variable no row touches) makes the Cholesky give up, not panic.

@@ -23,10 +23,25 @@
 //! demand, without changing the factor: every position row at the current headings (one forward
 //! and one back-substitution; a 2×2-block system solved from scratch when the translation
 //! information is not isotropic).
+//!
+//! **One factor for both while the weights are proportional.** The orientation and position
+//! systems share their graph; when every edge's position weight is the same multiple λ of its
+//! orientation weight (isotropic translation information, `w_pos = λ/σ_θ²`: city10000 and the
+//! simulated worlds), their square-root factors are the same R up to the scale `√λ`, and the
+//! positions' solution does not depend on λ. So one [`Laplacian`] with three right-hand sides
+//! (heading; x, y, weighted like the heading) is kept: each edge's row is rotated in once
+//! instead of twice, and one renewal builder runs instead of two. The position right-hand
+//! side of an edge is known only after its heading row and the step's wraps are applied (it
+//! reads the new heading); it enters as a shift of that row's right-hand side, through the
+//! gains its rotations recorded ([`crate::estimate::incremental::SqrtInfo::shift_last_row`]),
+//! O(path) without a second walk. Position variances are the shared ones divided by λ. At the
+//! first edge that breaks the proportion (or is anisotropic) the shared factor is split, once,
+//! into the two factors it stands for (R as it is for the headings; R and d times `√λ` for the
+//! positions), which go on separately as before.
 
 use super::laplacian::Laplacian;
 use crate::estimate::EstimateError;
-use crate::graph::{Pose2, PoseGraph};
+use crate::graph::{Edge, Pose2, PoseGraph};
 
 /// One change to the factored estimate.
 #[derive(Clone, Copy, Debug)]
@@ -43,11 +58,39 @@ pub(crate) enum Op {
     Step,
 }
 
+/// Relative difference below which two edges' position-to-heading weight ratios count as
+/// equal (the shared factor stays).
+const RATIO_TOLERANCE: f64 = 1e-12;
+
+/// The factors of the two systems (see the module docs).
+enum Factors {
+    /// One factor: right-hand side 0 the headings, 1 and 2 the positions, every row weighted
+    /// by its heading weight; `ratio` is λ (position weight over heading weight, the same for
+    /// every edge so far; None before the first edge).
+    Shared {
+        both: Laplacian<3>,
+        ratio: Option<f64>,
+    },
+    /// Two factors, each with its own weights (one boxed: the variants' sizes stay close).
+    Split {
+        heads: Laplacian<1>,
+        positions: Box<Laplacian<2>>,
+    },
+}
+
+impl Default for Factors {
+    fn default() -> Self {
+        Factors::Shared {
+            both: Laplacian::default(),
+            ratio: None,
+        }
+    }
+}
+
 /// The factored orientation and position systems with their pending operations.
 #[derive(Default)]
 pub(crate) struct Estimate {
-    heads: Laplacian<1>,
-    positions: Laplacian<2>,
+    factors: Factors,
     /// Some edge's translation information is not isotropic.
     anisotropic: bool,
     pending: Vec<Op>,
@@ -59,6 +102,92 @@ pub(crate) fn rotate(theta: f64, z: Pose2) -> [f64; 2] {
     [c * z.x - s * z.y, s * z.x + c * z.y]
 }
 
+/// An edge's position weight (the isotropic part of its translation information) and
+/// whether its translation information is isotropic.
+fn position_weight(edge: &Edge) -> (f64, bool) {
+    let o = edge.information().translation_information();
+    (
+        0.5 * (o[0][0] + o[1][1]),
+        o[0][1] == 0.0 && o[0][0] == o[1][1],
+    )
+}
+
+/// A job that writes `R(θ_a) t_e` (every edge's position measurement at the headings θ)
+/// into components `first` and `first + 1` of the first `edges` measurements.
+fn relinearise<const K: usize>(
+    theta: Vec<f64>,
+    graph: &PoseGraph,
+    edges: usize,
+    first: usize,
+) -> impl FnOnce(&mut [[f64; K]]) + Send + 'static {
+    let tails: Vec<(usize, Pose2)> = graph
+        .endpoints()
+        .iter()
+        .zip(graph.edges())
+        .take(edges)
+        .map(|(&(a, _), e)| (a, e.measurement()))
+        .collect();
+    move |y: &mut [[f64; K]]| {
+        for (ye, &(a, z)) in y.iter_mut().zip(&tails) {
+            let [px, py] = rotate(theta[a], z);
+            ye[first] = px;
+            ye[first + 1] = py;
+        }
+    }
+}
+
+impl Factors {
+    /// Keep the shared factor if edge (heading weight `w`, position weight `w_pos`,
+    /// `isotropic`) keeps the weights proportional; split it otherwise.
+    fn admit(&mut self, w: f64, w_pos: f64, isotropic: bool) {
+        let Factors::Shared { both, ratio } = self else {
+            return;
+        };
+        let r = w_pos / w;
+        // Equal up to the rounding of σ² (weights proportional in the file give ratios a few
+        // ulps apart): the positions' weights then differ from λ/σ² by that relative amount,
+        // which moves the solution by as little.
+        let keeps = isotropic
+            && r > 0.0
+            && r.is_finite()
+            && ratio.is_none_or(|l| (l - r).abs() <= RATIO_TOLERANCE * l);
+        if keeps {
+            *ratio = Some(r);
+            return;
+        }
+        let scale = ratio.map_or(1.0, f64::sqrt);
+        // The counters go on in the headings' factor.
+        let mut heads = both.columns([0], 1.0);
+        (heads.renewals, heads.waits) = (both.renewals, both.waits);
+        let positions = Box::new(both.columns([1, 2], scale));
+        *self = Factors::Split { heads, positions };
+    }
+
+    /// Orientation of node v.
+    fn orientation(&mut self, v: usize) -> f64 {
+        match self {
+            Factors::Shared { both, .. } => both.value_of(v, 0),
+            Factors::Split { heads, .. } => heads.value(v)[0],
+        }
+    }
+
+    /// Every orientation (one back-substitution).
+    fn orientations(&mut self) -> Vec<f64> {
+        match self {
+            Factors::Shared { both, .. } => both.all(0),
+            Factors::Split { heads, .. } => heads.all(0),
+        }
+    }
+
+    /// Number of position rows.
+    fn position_rows(&self) -> usize {
+        match self {
+            Factors::Shared { both, .. } => both.edge_count(),
+            Factors::Split { positions, .. } => positions.edge_count(),
+        }
+    }
+}
+
 impl Estimate {
     /// Queue an operation.
     pub fn push(&mut self, op: Op) {
@@ -67,10 +196,19 @@ impl Estimate {
 
     /// Renewals completed and steps that waited for a renewal's builder.
     pub fn renewals(&self) -> (usize, usize) {
-        (
-            self.heads.renewals + self.positions.renewals,
-            self.heads.waits + self.positions.waits,
-        )
+        match &self.factors {
+            Factors::Shared { both, .. } => (both.renewals, both.waits),
+            Factors::Split { heads, positions } => (
+                heads.renewals + positions.renewals,
+                heads.waits + positions.waits,
+            ),
+        }
+    }
+
+    /// Whether the two systems share one factor (every edge so far has proportional weights).
+    #[cfg(test)]
+    pub fn shared(&self) -> bool {
+        matches!(self.factors, Factors::Shared { .. })
     }
 
     /// Apply the pending operations (in order).
@@ -78,85 +216,126 @@ impl Estimate {
         let pending = std::mem::take(&mut self.pending);
         for &op in &pending {
             match op {
-                Op::Node => {
-                    self.heads.add_node();
-                    self.positions.add_node();
-                }
+                Op::Node => match &mut self.factors {
+                    Factors::Shared { both, .. } => {
+                        both.add_node();
+                    }
+                    Factors::Split { heads, positions } => {
+                        heads.add_node();
+                        positions.add_node();
+                    }
+                },
                 Op::Edge { e, a, b, y } => {
-                    let w = graph.edges()[e as usize].sigma2().recip();
-                    self.heads.add_edge(a as usize, b as usize, w, [y]);
+                    let edge = &graph.edges()[e as usize];
+                    let w = edge.sigma2().recip();
+                    let (w_pos, isotropic) = position_weight(edge);
+                    self.factors.admit(w, w_pos, isotropic);
+                    let (a, b) = (a as usize, b as usize);
+                    match &mut self.factors {
+                        // The position components come with the position row.
+                        Factors::Shared { both, .. } => both.add_edge(a, b, w, [y, 0.0, 0.0]),
+                        Factors::Split { heads, .. } => heads.add_edge(a, b, w, [y]),
+                    }
                 }
-                Op::Wrap { e, y } => self.heads.set_y(e as usize, [y]),
+                Op::Wrap { e, y } => match &mut self.factors {
+                    Factors::Shared { both, .. } => {
+                        let [_, px, py] = both.y(e as usize);
+                        both.set_y(e as usize, [y, px, py]);
+                    }
+                    Factors::Split { heads, .. } => heads.set_y(e as usize, [y]),
+                },
                 Op::Position { e, a, b, y } => {
                     let edge = &graph.edges()[e as usize];
-                    let o = edge.information().translation_information();
-                    self.anisotropic |= o[0][1] != 0.0 || o[0][0] != o[1][1];
+                    let (w, isotropic) = position_weight(edge);
+                    self.anisotropic |= !isotropic;
                     let theta_a = if a > b {
-                        self.heads.value(a as usize)[0]
+                        self.factors.orientation(a as usize)
                     } else {
-                        self.heads.value(b as usize)[0] - y
+                        self.factors.orientation(b as usize) - y
                     };
-                    let w = 0.5 * (o[0][0] + o[1][1]);
-                    let t = rotate(theta_a, edge.measurement());
-                    self.positions.add_edge(a as usize, b as usize, w, t);
+                    let [px, py] = rotate(theta_a, edge.measurement());
+                    match &mut self.factors {
+                        Factors::Shared { both, .. } => {
+                            let [heading, ..] = both.y(e as usize);
+                            both.set_y(e as usize, [heading, px, py]);
+                        }
+                        Factors::Split { positions, .. } => {
+                            positions.add_edge(a as usize, b as usize, w, [px, py]);
+                        }
+                    }
                 }
-                Op::Step => {
-                    // One builder at a time (heads first).
-                    let free = !self.positions.renewing();
-                    self.heads.after_step(free, || None);
-                    // A renewal of the position factor takes every position row at the
-                    // current headings.
-                    let free = !self.heads.renewing();
-                    let (heads, edges) = (&mut self.heads, self.positions.edge_count());
-                    self.positions.after_step(free, || {
-                        // The headings here (one back-substitution); the rows on the builder.
-                        let theta = heads.all(0);
-                        let tails: Vec<(usize, Pose2)> = graph
-                            .endpoints()
-                            .iter()
-                            .zip(graph.edges())
-                            .take(edges)
-                            .map(|(&(a, _), e)| (a, e.measurement()))
-                            .collect();
-                        Some(Box::new(move || {
-                            tails.iter().map(|&(a, z)| rotate(theta[a], z)).collect()
-                        }))
-                    });
-                }
+                Op::Step => self.after_step(graph),
             }
         }
         self.pending = pending;
         self.pending.clear();
     }
 
+    /// End of a step: renewals start or complete. A renewal of the position factor (or of
+    /// the shared one) takes every position row at the current headings.
+    fn after_step(&mut self, graph: &PoseGraph) {
+        let edges = self.factors.position_rows();
+        match &mut self.factors {
+            Factors::Shared { both, .. } => both.after_step(true, |both| {
+                // The headings here (one back-substitution); the rows on the builder.
+                Some(Box::new(relinearise::<3>(both.all(0), graph, edges, 1)))
+            }),
+            Factors::Split { heads, positions } => {
+                // One builder at a time (heads first).
+                let free = !positions.renewing();
+                heads.after_step(free, |_| None);
+                let free = !heads.renewing();
+                positions.after_step(free, |_| {
+                    // The headings here (one back-substitution); the rows on the builder.
+                    Some(Box::new(relinearise::<2>(heads.all(0), graph, edges, 0)))
+                });
+            }
+        }
+    }
+
     /// Orientation of node v (O(1) for the newest).
     pub fn orientation(&mut self, graph: &PoseGraph, v: usize) -> f64 {
         self.sync(graph);
-        self.heads.value(v)[0]
+        self.factors.orientation(v)
     }
 
     /// Every orientation: one back-substitution.
     pub fn orientations(&mut self, graph: &PoseGraph) -> Vec<f64> {
         self.sync(graph);
-        self.heads.all(0)
+        self.factors.orientations()
     }
 
     /// The fast pose of node v (see the module docs; O(1) for the newest).
     pub fn pose(&mut self, graph: &PoseGraph, v: usize) -> Pose2 {
         self.sync(graph);
-        let [x, y] = self.positions.value(v);
-        Pose2::new(x, y, self.heads.value(v)[0])
+        match &mut self.factors {
+            Factors::Shared { both, .. } => {
+                let [theta, x, y] = both.value(v);
+                Pose2::new(x, y, theta)
+            }
+            Factors::Split { heads, positions } => {
+                let [x, y] = positions.value(v);
+                Pose2::new(x, y, heads.value(v)[0])
+            }
+        }
     }
 
     /// Every pose, exact (see the module docs).
     pub fn poses(&mut self, graph: &PoseGraph) -> Result<Vec<Pose2>, EstimateError> {
         self.sync(graph);
-        let theta = self.heads.all(0);
+        let theta = self.factors.orientations();
         if self.anisotropic {
             return crate::estimate::poses(graph, &theta);
         }
-        let y = relinearised(&mut self.heads, graph, self.positions.edge_count());
-        let [x, y] = self.positions.all_for(y);
+        let edges = self.factors.position_rows();
+        let [x, y] = match &mut self.factors {
+            Factors::Shared { both, .. } => {
+                both.all_for(relinearise::<3>(theta.clone(), graph, edges, 1), [1, 2])
+            }
+            Factors::Split { positions, .. } => {
+                positions.all_for(relinearise::<2>(theta.clone(), graph, edges, 0), [0, 1])
+            }
+        };
         Ok((0..theta.len())
             .map(|v| Pose2::new(x[v], y[v], theta[v]))
             .collect())
@@ -165,25 +344,177 @@ impl Estimate {
     /// Variance of node v's orientation relative to its anchor.
     pub fn orientation_variance(&mut self, graph: &PoseGraph, v: usize) -> f64 {
         self.sync(graph);
-        self.heads.variance(v)
+        match &mut self.factors {
+            Factors::Shared { both, .. } => both.variance(v),
+            Factors::Split { heads, .. } => heads.variance(v),
+        }
     }
 
     /// Variance of each coordinate of node v's position relative to its anchor (isotropic
     /// weights).
     pub fn position_variance(&mut self, graph: &PoseGraph, v: usize) -> f64 {
         self.sync(graph);
-        self.positions.variance(v)
+        match &mut self.factors {
+            // The shared factor weighs the positions' rows by 1/λ of their weights.
+            Factors::Shared { both, ratio } => both.variance(v) / ratio.unwrap_or(1.0),
+            Factors::Split { positions, .. } => positions.variance(v),
+        }
     }
 }
 
-/// The first `edges` position rows at the current headings.
-fn relinearised(heads: &mut Laplacian<1>, graph: &PoseGraph, edges: usize) -> Vec<[f64; 2]> {
-    let theta = heads.all(0);
-    graph
-        .endpoints()
-        .iter()
-        .zip(graph.edges())
-        .take(edges)
-        .map(|(&(a, _), e)| rotate(theta[a], e.measurement()))
-        .collect()
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::graph::{Information, NodePolicy};
+
+    impl Estimate {
+        /// Two factors from the start (what the shared factor must equal).
+        fn split() -> Self {
+            Estimate {
+                factors: Factors::Split {
+                    heads: Laplacian::default(),
+                    positions: Box::default(),
+                },
+                ..Estimate::default()
+            }
+        }
+    }
+
+    fn lcg(state: &mut u64) -> f64 {
+        *state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((*state >> 11) as f64) / ((1u64 << 53) as f64)
+    }
+
+    /// Edges in robot order over `n` nodes: odometry, and a loop closure to an older node
+    /// every third node; edge i has the information `info(i)`.
+    fn world(n: u64, info: impl Fn(usize) -> Information) -> Vec<Edge> {
+        let mut s = 5u64;
+        let mut edges = Vec::new();
+        for v in 1..n {
+            let mut to_older = vec![v - 1];
+            if v % 3 == 0 && v > 40 {
+                to_older.push((lcg(&mut s) * (v - 10) as f64) as u64);
+            }
+            for u in to_older {
+                let z = Pose2::new(lcg(&mut s) - 0.5, lcg(&mut s) - 0.5, lcg(&mut s) - 0.5);
+                edges.push(Edge::new(u, v, z, info(edges.len())).unwrap());
+            }
+        }
+        edges
+    }
+
+    /// Stream the edges into every estimate (with a wrap moved on some older edge every few
+    /// steps) and compare each with the first after every step.
+    fn stream(edges: &[Edge], ests: &mut [Estimate]) {
+        let mut graph = PoseGraph::new();
+        let mut s = 11u64;
+        for (i, edge) in edges.iter().enumerate() {
+            let before = graph.node_count();
+            let e = graph.add_edge(*edge, NodePolicy::CreateUnknown).unwrap();
+            let (a, b) = graph.endpoints()[e];
+            let (e32, a, b) = (e as u32, a as u32, b as u32);
+            let y = edge.delta();
+            let mut ops: Vec<Op> = (before..graph.node_count()).map(|_| Op::Node).collect();
+            ops.push(Op::Edge { e: e32, a, b, y });
+            if i % 7 == 0 && e > 0 {
+                let c = (lcg(&mut s) * e as f64) as usize;
+                let y = graph.edges()[c].delta() - std::f64::consts::TAU;
+                ops.push(Op::Wrap { e: c as u32, y });
+            }
+            ops.extend([Op::Position { e: e32, a, b, y }, Op::Step]);
+            for est in ests.iter_mut() {
+                for &op in &ops {
+                    est.push(op);
+                }
+            }
+            let (first, rest) = ests.split_first_mut().unwrap();
+            let newest = graph.node_count() - 1;
+            let want = first.pose(&graph, newest);
+            for est in rest {
+                // The fast positions are re-linearised whenever the position factor is renewed
+                // (at different steps with one factor or two): equal until the first renewal.
+                let got = est.pose(&graph, newest);
+                let close = |a: f64, b: f64| (a - b).abs() < 1e-9;
+                let fast_equal = first.renewals().0 + est.renewals().0 > 0
+                    || close(got.x, want.x) && close(got.y, want.y);
+                assert!(
+                    fast_equal && close(got.theta, want.theta),
+                    "step {i}: {got:?} vs {want:?}"
+                );
+                if i % 50 == 0 || i + 1 == edges.len() {
+                    let v = (lcg(&mut s) * newest as f64) as usize;
+                    let pairs = [
+                        (est.orientation(&graph, v), first.orientation(&graph, v)),
+                        (
+                            est.orientation_variance(&graph, v),
+                            first.orientation_variance(&graph, v),
+                        ),
+                        (
+                            est.position_variance(&graph, v),
+                            first.position_variance(&graph, v),
+                        ),
+                    ];
+                    for (g, w) in pairs {
+                        assert!(
+                            (g - w).abs() < 1e-9 * w.abs().max(1.0),
+                            "{i} {v}: {g} vs {w}"
+                        );
+                    }
+                    let (all, want_all) =
+                        (est.poses(&graph).unwrap(), first.poses(&graph).unwrap());
+                    for (g, w) in all.iter().zip(&want_all) {
+                        assert!(close(g.x, w.x) && close(g.y, w.y) && close(g.theta, w.theta));
+                    }
+                }
+            }
+        }
+    }
+
+    /// Position weights 3× the heading weights on every edge (two kinds of edges): one
+    /// shared factor all along (renewals included), with the answers of two factors.
+    #[test]
+    fn a_shared_factor_equals_two_factors() {
+        let info = |i: usize| {
+            let (t, xy) = if i.is_multiple_of(5) {
+                (4.0, 12.0)
+            } else {
+                (50.0, 150.0)
+            };
+            Information::diagonal(xy, xy, t)
+        };
+        let edges = world(700, info);
+        let mut ests = [Estimate::split(), Estimate::default()];
+        stream(&edges, &mut ests);
+        assert!(ests[1].shared() && !ests[0].shared());
+        assert!(ests[1].renewals().0 > 0, "the shared factor was renewed");
+    }
+
+    /// The first edge whose weights break the proportion splits the shared factor, and the
+    /// two factors it becomes go on with the answers of two factors from the start; an
+    /// anisotropic edge splits it too.
+    #[test]
+    fn a_shared_factor_splits_at_the_first_disproportionate_edge() {
+        for (at, odd) in [
+            (400, Information::diagonal(30.0, 30.0, 4.0)),
+            (350, Information([30.0, 2.0, 0.0, 31.0, 0.0, 10.0])),
+        ] {
+            let info = |i: usize| {
+                if i == at {
+                    odd
+                } else {
+                    Information::diagonal(150.0, 150.0, 50.0)
+                }
+            };
+            let edges = world(600, info);
+            let mut ests = [Estimate::split(), Estimate::default()];
+            stream(&edges, &mut ests);
+            assert!(!ests[1].shared());
+            // And it was shared until that edge.
+            let mut ests = [Estimate::split(), Estimate::default()];
+            stream(&edges[..at], &mut ests);
+            assert!(ests[1].shared());
+        }
+    }
 }

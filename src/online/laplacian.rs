@@ -23,7 +23,12 @@
 //!   its older end;
 //! - two components joined: the later anchor's prior row is removed (a down-date);
 //! - an edge whose `y_e` changed (a chord's wrap after a re-screening, a heading that moved):
-//!   only its right-hand side moves.
+//!   only its right-hand side moves (for the edge just added, by the gains its rotations
+//!   recorded: how the shared factor of [`super::estimate`] takes an edge's position
+//!   right-hand side after its heading row).
+//!
+//! [`Laplacian::columns`] splits off some right-hand sides as a system of their own, with the
+//! weights scaled (how a shared factor of headings and positions becomes two).
 //!
 //! **Renewing the order without a stall.** New nodes are appended at the end, so revisits of
 //! old places make R fill in, and the nodes appended since the last renewal form a chain that
@@ -75,8 +80,9 @@ pub(crate) enum Msg<const K: usize> {
 /// What a renewal's builder returns: its factor and the right-hand sides it holds.
 type Built<const K: usize> = (SqrtInfo<K>, Vec<[f64; K]>);
 
-/// A job that computes new right-hand sides for a renewal's snapshot, run by the builder.
-pub(crate) type Relinearise<const K: usize> = Box<dyn FnOnce() -> Vec<[f64; K]> + Send>;
+/// A job that rewrites (some of) the measurements `y` of a renewal's snapshot, run by the
+/// builder.
+pub(crate) type Relinearise<const K: usize> = Box<dyn FnOnce(&mut [[f64; K]]) + Send>;
 
 /// A renewal of a Laplacian's factor in progress.
 type Renewal<const K: usize> = Beside<Built<K>, Msg<K>>;
@@ -281,6 +287,9 @@ pub(crate) struct Laplacian<const K: usize> {
     /// The thread that builds renewals and frees retired factors.
     worker: Worker,
     steps: u64,
+    /// The edge whose row was the last one rotated into the factor, while no row was added
+    /// or removed since (its right-hand side moves by [`SqrtInfo::shift_last_row`]).
+    last_edge: Option<usize>,
     /// Renewals completed.
     pub renewals: usize,
     /// Steps that waited for a renewal's builder.
@@ -301,6 +310,7 @@ impl<const K: usize> Default for Laplacian<K> {
             renewal: None,
             worker: Worker::default(),
             steps: 0,
+            last_edge: None,
             renewals: 0,
             waits: 0,
         }
@@ -356,6 +366,7 @@ impl<const K: usize> Laplacian<K> {
             self.send(Msg::Prior(prior));
         }
         self.factor.add_row(&self.rows.entries(e), self.rows.rhs(e));
+        self.last_edge = Some(e);
         self.send(Msg::Edge(a as u32, b as u32, self.rows.sqrt_w[e], y));
         if ra != rb {
             self.components.union(a, b);
@@ -363,6 +374,7 @@ impl<const K: usize> Laplacian<K> {
             self.anchor[r] = winner;
             let p = self.prior[loser];
             if p != 0.0 {
+                self.last_edge = None;
                 self.prior[loser] = 0.0;
                 self.send(Msg::Unprior((loser, p)));
                 if self.factor.remove_row(&[(loser, p)], [0.0; K]).is_err() {
@@ -383,17 +395,52 @@ impl<const K: usize> Laplacian<K> {
         self.rows.y[e] = y;
         let s = self.rows.sqrt_w[e];
         let shift: [f64; K] = std::array::from_fn(|q| s * (y[q] - old[q]));
-        self.factor.shift_rhs(&self.rows.entries(e), shift);
+        if self.last_edge != Some(e) || !self.factor.shift_last_row(shift) {
+            self.factor.shift_rhs(&self.rows.entries(e), shift);
+        }
         self.send(Msg::SetY(e as u32, y));
     }
 
-    /// Every node's values (per right-hand side) for other measurements `y`, leaving the
-    /// factor as it was: one forward and one back-substitution.
-    pub fn all_for(&mut self, y: Vec<[f64; K]>) -> [Vec<f64>; K] {
-        let saved_y = std::mem::replace(&mut self.rows.y, y);
+    /// Edge e's measurement.
+    pub fn y(&self, e: usize) -> [f64; K] {
+        self.rows.y[e]
+    }
+
+    /// The same system for the measurements' components `columns`, with every weight
+    /// multiplied by `scale²` (R, d and the priors by `scale`): how a shared factor splits in
+    /// two. No renewal in progress; the counters stay with the original.
+    pub fn columns<const M: usize>(&self, columns: [usize; M], scale: f64) -> Laplacian<M> {
+        Laplacian {
+            factor: self.factor.columns(columns, scale),
+            rows: Rows {
+                ends: self.rows.ends.clone(),
+                sqrt_w: self.rows.sqrt_w.iter().map(|&s| scale * s).collect(),
+                y: self.rows.y.iter().map(|y| columns.map(|q| y[q])).collect(),
+            },
+            components: self.components.clone(),
+            anchor: self.anchor.clone(),
+            prior: self.prior.iter().map(|&p| scale * p).collect(),
+            first_weight: self.first_weight.iter().map(|&p| scale * p).collect(),
+            fill_after_renewal: self.fill_after_renewal,
+            nodes_at_renewal: self.nodes_at_renewal,
+            steps: self.steps,
+            ..Laplacian::default()
+        }
+    }
+
+    /// Every node's values for the right-hand sides `columns`, with the measurements
+    /// rewritten by `relinearise`, leaving the system as it was: one forward and one
+    /// back-substitution per column.
+    pub fn all_for<const M: usize>(
+        &mut self,
+        relinearise: impl FnOnce(&mut [[f64; K]]),
+        columns: [usize; M],
+    ) -> [Vec<f64>; M] {
+        let saved_y = self.rows.y.clone();
+        relinearise(&mut self.rows.y);
         let saved_d = self.factor.rhs().to_vec();
         reset_rhs(&mut self.factor, &self.rows);
-        let out = std::array::from_fn(|q| self.all(q));
+        let out = columns.map(|q| self.all(q));
         self.rows.y = saved_y;
         self.factor.set_rhs(saved_d);
         out
@@ -403,6 +450,11 @@ impl<const K: usize> Laplacian<K> {
     /// last node of the order, the newest).
     pub fn value(&mut self, v: usize) -> [f64; K] {
         self.factor.value(v)
+    }
+
+    /// Value of node v for right-hand side q only.
+    pub fn value_of(&mut self, v: usize, q: usize) -> f64 {
+        self.factor.value_of(v, q)
     }
 
     /// Values of every node for right-hand side q: one back-substitution (each relative to
@@ -449,7 +501,7 @@ impl<const K: usize> Laplacian<K> {
     pub fn after_step(
         &mut self,
         may_start: bool,
-        relinearise: impl FnOnce() -> Option<Relinearise<K>>,
+        relinearise: impl FnOnce(&mut Self) -> Option<Relinearise<K>>,
     ) {
         self.steps += 1;
         if self.renewal.is_some() {
@@ -471,7 +523,7 @@ impl<const K: usize> Laplacian<K> {
             return;
         }
         let mut rows = self.rows.clone();
-        let relinearise = relinearise();
+        let relinearise = relinearise(self);
         let prior = self.prior.clone();
         let newest = n - 1;
         // The builder's work grows with the size of the factor it builds (about the last
@@ -480,10 +532,8 @@ impl<const K: usize> Laplacian<K> {
         let expected_nnz = self.fill_after_renewal.max(2.0) * n as f64;
         let delay = MIN_DELAY.max((expected_nnz * DELAY_PER_ROW) as u64);
         let build = move || {
-            if let Some(y) = relinearise.map(|job| job())
-                && y.len() == rows.y.len()
-            {
-                rows.y = y;
+            if let Some(job) = relinearise {
+                job(&mut rows.y);
             }
             Some((build(&rows, &prior, n, Some(newest)), rows))
         };
@@ -505,10 +555,12 @@ impl<const K: usize> Laplacian<K> {
                     let old = *rows.y.get(e)?;
                     rows.y[e] = y;
                     let s = rows.sqrt_w[e];
-                    f.shift_rhs(
-                        &rows.entries(e),
-                        std::array::from_fn(|q| s * (y[q] - old[q])),
-                    );
+                    let shift = std::array::from_fn(|q| s * (y[q] - old[q]));
+                    // The last edge's row is the last row added unless a prior's was removed
+                    // since (which makes the gains stale).
+                    if e + 1 != rows.ends.len() || !f.shift_last_row(shift) {
+                        f.shift_rhs(&rows.entries(e), shift);
+                    }
                 }
             }
             Some(())
@@ -542,6 +594,7 @@ impl<const K: usize> Laplacian<K> {
         }
         self.rows.y = y;
         self.fill_after_renewal = fresh.nnz() as f64 / self.len().max(1) as f64;
+        self.last_edge = None;
         let old = std::mem::replace(&mut self.factor, fresh);
         self.worker.retire("so2lin-renew", old);
         self.renewals += 1;
