@@ -29,18 +29,22 @@ fn stream_and_compare_with(
     let mut prev_gamma: Vec<i64> = Vec::new();
     let mut gamma_moved = 0;
     let mut moved = 0;
+    let mut evictions = 0;
     for (i, e) in edges.iter().enumerate() {
         let step = est.add_edge(*e).unwrap();
         let newest = est.orientation(e.to()).unwrap().unwrap();
         let k = est.wraps().unwrap();
-        if k[..prev_wraps.len()] != prev_wraps[..] {
-            moved += 1;
+        let g = est.gamma();
+        // An eviction rebuilds the estimator without an accepted edge (fewer edges and
+        // cycles, renumbered): nothing earlier to compare with.
+        let evicted = k.len() < prev_wraps.len() || g.len() < prev_gamma.len();
+        if evicted {
+            evictions += 1;
+        } else {
+            moved += usize::from(k[..prev_wraps.len()] != prev_wraps[..]);
+            gamma_moved += usize::from(g[..prev_gamma.len()] != prev_gamma[..]);
         }
         prev_wraps = k.clone();
-        let g = est.gamma();
-        if g[..prev_gamma.len()] != prev_gamma[..] {
-            gamma_moved += 1;
-        }
         prev_gamma = g;
         if !check(i, matches!(step.kind, StepKind::Cycle(_))) {
             continue;
@@ -71,7 +75,9 @@ fn stream_and_compare_with(
         );
     }
     eprintln!("{name}: {:?}", est.counters());
-    eprintln!("{name}: {gamma_moved} steps moved an earlier γ, {moved} an earlier wrap");
+    eprintln!(
+        "{name}: {gamma_moved} steps moved an earlier γ, {moved} an earlier wrap, {evictions} evicted"
+    );
     (moved, est.counters())
 }
 
