@@ -209,7 +209,7 @@ fn declared_wider(g: &PoseGraph, factor: f64) -> PoseGraph {
 /// closing a long cycle passes both tests at the declared noise): the angle noise scale
 /// sharpens the angle test and the translation closures' heading noise. With the defaults
 /// (evictions by the path-triggered examination on) the pooled precision and recall were
-/// measured at 0.939 and 0.716 (without evictions 0.907 / 0.641) — short of the issue's 0.95,
+/// measured at 0.942 and 0.716 (without evictions 0.907 / 0.641) — short of the issue's 0.95,
 /// which is why issue 11 stays open; this guards what is reached, and a clean copy of each
 /// world quarantines nothing.
 #[test]
