@@ -23,10 +23,20 @@
 //!    current θ (`k_e = round((δ_e − θ_j + θ_i) / 2π)`), started from the hypothesis' θ*;
 //! 2. the SE(2) cost, d = 3, `χ²_e = e_eᵀ Ω_e e_e`: least-squares positions from stage 1,
 //!    Levenberg–Marquardt with the stage-1 weights, then reweighted Levenberg–Marquardt;
-//! 3. loop closures with `χ²_e > Φ` at the result are **rejected**; if none is, the five loop
-//!    closures of largest χ²_e are tested by leaving each out: `Δ_e = F − min F_{without e}`
-//!    (the cost drop, χ²_3 for a genuine edge in the linear-Gaussian model) `> Φ` rejects
-//!    it. This catches a false edge the map has bent to fit, whose residual is small.
+//! 3. loop closures with `χ²_e > Φ` at the result are **rejected**; if none is, the **leave-out
+//!    test**: a false edge the map bent to fit has a small residual but a large cost drop when
+//!    it is left out, `Δ_G = min F − min F_{without G}` (χ²_{3|G|} for genuine edges in the
+//!    linear-Gaussian model). Δ_G is computed linearised for every loop closure alone and for
+//!    every *place group* (loop closures whose two ends are each within 10 node indices of
+//!    another's, transitively: one revisit, or a group of false edges sharing a measurement,
+//!    which hold each other up and drop little one at a time) by
+//!    [`crate::refine::leave_out_drops`] (sparse forward solves, no dense inverse), and
+//!    compared with `s · χ²_{3|G|}⁻¹(1 − α/(2N))` (N candidates; s the larger of the two noise
+//!    scales the quarantine estimated, 1 without it: declared noise 4–30× too wide would
+//!    otherwise hide every bent edge). Beyond it, the largest drop *per edge left out* first (of
+//!    a false edge and the genuine edges it contradicts, leaving out either resolves the
+//!    conflict; the fewer edges explain it) is verified by refining without it, and rejected
+//!    when the refined drop also exceeds the threshold; repeated, at most 8 groups a pass.
 //!
 //! Before the first pass ([`RobustConfig::quarantine`], on by default) the graph is streamed
 //! through the online estimator in robot order with quarantine on (family-wise at α, angle and
@@ -36,8 +46,12 @@
 //! met before any later cycle is routed through it; the passes then catch what slipped through.
 //!
 //! After a pass that rejected edges, the graph without them is screened again and solved from
-//! its own θ* by a new pass (at most five passes). Then every rejected loop closure (by the
-//! quarantine or by a pass) whose `χ²_e ≤ Φ` (d = 3) at the robust poses is restored (a
+//! its own θ* by a new pass (at most five passes). Then the **consensus step**: a place group
+//! of two or more rejected loop closures (the largest four) is restored and the graph refined
+//! and given the leave-out test; the swap is kept when fewer edges are left out than were
+//! restored and no loop closure then exceeds Φ. A false edge that arrived before its genuine
+//! contradictors made the stream quarantine them; restored together they outweigh it. Last,
+//! every rejected loop closure whose `χ²_e ≤ s·Φ` (d = 3) at the robust poses is restored (a
 //! genuine edge quarantined online because its cycle then ran through a false edge fits the
 //! solution, and so does one an early pass rejected at poses the later passes corrected);
 //! the final poses are the plain refinement on the edges kept: on clean data, the ordinary
@@ -149,7 +163,9 @@ pub struct RejectedEdge {
     pub from: NodeId,
     /// Target node id.
     pub to: NodeId,
-    /// The test: `"se2_chi2"` (the edge's `e_eᵀ Ω_e e_e` at the robust solution, 3 dof), or
+    /// The test: `"se2_chi2"` (the edge's `e_eᵀ Ω_e e_e` at the robust solution, 3 dof),
+    /// `"leave_out"` (statistic: the cost drop of leaving the edge's group out, threshold
+    /// `s · χ²_{3|G|}⁻¹`, module docs), or
     /// the online tests of its cycle at arrival, `"cycle_angle"` (statistic: the distance of
     /// the conditional mean of γ to the nearest integer in σ; threshold q) and
     /// `"cycle_translation"` (statistic: χ²₂ of the translation closure, [`crate::closure`]).
@@ -158,6 +174,21 @@ pub struct RejectedEdge {
     pub statistic: f64,
     /// The threshold Φ it exceeded.
     pub threshold: f64,
+}
+
+impl RejectedEdge {
+    /// Edge `e` of `graph` rejected by `test`.
+    fn of(graph: &PoseGraph, e: usize, test: &'static str, statistic: f64, threshold: f64) -> Self {
+        let edge = &graph.edges()[e];
+        Self {
+            edge: e,
+            from: edge.from(),
+            to: edge.to(),
+            test,
+            statistic,
+            threshold,
+        }
+    }
 }
 
 /// Settings of [`solve_robust`].
@@ -320,37 +351,34 @@ pub fn solve_robust(
     if !rejected.is_empty() {
         (g, theta0) = without(&rejected, &mut alive)?;
     }
+    // The leave-out test and the restoring test in the noise the data show (module docs):
+    // the larger of the two scales, so neither component is tested tighter than its own.
+    let scale = noise_scales.map_or(1.0, |s| s.angle.max(s.translation));
     let mut first = None;
     let mut x;
     let mut pass = 0;
     loop {
         pass += 1;
-        let p = robust_pass(&g, &theta0, refine, robust, phi)?;
+        let p = robust_pass(&g, &theta0, refine, robust, phi, scale)?;
         x = p.poses;
         first.get_or_insert((p.chi2_orientation, p.linear));
         if p.rejected.is_empty() || pass == 5 {
             break;
         }
-        for (local, chi2) in p.rejected {
-            let e = alive[local];
-            rejected.push(RejectedEdge {
-                edge: e,
-                from: edges[e].from(),
-                to: edges[e].to(),
-                test: "se2_chi2",
-                statistic: chi2,
-                threshold: phi.1,
-            });
-        }
+        rejected.extend(p.rejected.into_iter().map(|r| RejectedEdge {
+            edge: alive[r.edge],
+            ..r
+        }));
         rejected.sort_by_key(|r| r.edge);
         (g, theta0) = without(&rejected, &mut alive)?;
     }
+    x = consensus(graph, x, &mut rejected, refine, robust.alpha, phi.1, scale)?;
     // Rejected loop closures whose SE(2) χ²_e at the robust solution is within Φ are
     // restored (module docs): the online tests saw them through cycles that the solution no
     // longer needs, and an earlier pass through poses that later passes corrected.
     let chi2: Vec<f64> = refine.residual.edge_costs(graph, &x).collect();
     let before = rejected.len();
-    rejected.retain(|r| chi2[r.edge].is_nan() || chi2[r.edge] > phi.1);
+    rejected.retain(|r| chi2[r.edge].is_nan() || chi2[r.edge] > scale * phi.1);
     if rejected.len() < before {
         let mut keep = vec![1.0; edges.len()];
         for r in &rejected {
@@ -374,6 +402,75 @@ pub fn solve_robust(
         noise_scales,
         seconds: t.elapsed().as_secs_f64(),
     })
+}
+
+/// Rejected place groups tried for restoration per solve ([`consensus`]).
+const CONSENSUS_TRIES: usize = 4;
+
+/// The consensus step (module docs): a place group of two or more rejected loop closures
+/// ([`place_groups`]; largest first, at most [`CONSENSUS_TRIES`]) is restored and the graph
+/// refined and tested by leaving out ([`leave_out`]). The swap is kept when fewer edges were
+/// left out than restored and no loop closure then has `χ²_e > Φ`: the larger set of
+/// mutually consistent loop closures wins (a false edge accepted early had its genuine
+/// contradictors quarantined; restored together, they outweigh it).
+fn consensus(
+    graph: &PoseGraph,
+    mut x: Vec<Pose2>,
+    rejected: &mut Vec<RejectedEdge>,
+    refine: &RefineConfig,
+    alpha: f64,
+    phi: f64,
+    scale: f64,
+) -> Result<Vec<Pose2>, SolveError> {
+    let inner = RefineConfig {
+        iterations: refine.iterations.min(20),
+        ..*refine
+    };
+    let edges = graph.edges();
+    let lcs: Vec<usize> = rejected
+        .iter()
+        .map(|r| r.edge)
+        .filter(|&e| !edges[e].is_odometric())
+        .collect();
+    let mut places: Vec<Vec<usize>> = place_groups(graph, &lcs)
+        .into_iter()
+        .filter(|p| p.len() > 1)
+        .collect();
+    places.sort_by_key(|p| (std::cmp::Reverse(p.len()), p[0]));
+    for place in places.into_iter().take(CONSENSUS_TRIES) {
+        let mut keep = vec![1.0; edges.len()];
+        for r in rejected.iter() {
+            if place.binary_search(&r.edge).is_err() {
+                keep[r.edge] = 0.0;
+            }
+        }
+        let alive: Vec<usize> = (0..edges.len()).filter(|&e| keep[e] > 0.0).collect();
+        let g = reweighted(graph, &keep)?;
+        let y = crate::refine::refine(&g, &x, &inner)?.poses;
+        let (y, out) = leave_out(&g, &vec![1.0; g.edge_count()], y, &inner, alpha, scale)?;
+        if out.len() >= place.len() {
+            continue;
+        }
+        let mut left = vec![false; g.edge_count()];
+        for r in &out {
+            left[r.edge] = true;
+        }
+        let fits = inner
+            .residual
+            .edge_costs(&g, &y)
+            .enumerate()
+            .all(|(l, c)| left[l] || g.edges()[l].is_odometric() || c <= phi);
+        if fits {
+            rejected.retain(|r| place.binary_search(&r.edge).is_err());
+            rejected.extend(out.into_iter().map(|r| RejectedEdge {
+                edge: alive[r.edge],
+                ..r
+            }));
+            rejected.sort_by_key(|r| r.edge);
+            x = y;
+        }
+    }
+    Ok(x)
 }
 
 /// The loop closures the online estimator quarantines when `graph` is streamed in robot order
@@ -481,15 +578,152 @@ pub fn translation_failures(
         .collect()
 }
 
-/// Loop closures tested by leaving them out, per pass (those with the largest χ²_e).
-const LEAVE_ONE_OUT: usize = 5;
+/// Candidates verified by a refinement without them, per leave-out round ([`leave_out`]).
+const LEAVE_OUT_TRIES: usize = 5;
+/// Most groups rejected by leaving them out, per pass ([`leave_out`]).
+const LEAVE_OUT_ROUNDS: usize = 8;
+/// Loop closures whose ends are both within this many node indices of another's are in one
+/// place group ([`place_groups`]).
+const GROUP_SPAN: usize = 10;
+
+/// Loop closures `lcs` (edge indices) grouped by place: `(a, b)` and `(a′, b′)` (node indices,
+/// `a < b`) with `|a − a′| ≤ GROUP_SPAN` and `|b − b′| ≤ GROUP_SPAN` are in one group,
+/// transitively (a run of loop closures of one revisit, or a group of false ones sharing a
+/// measurement). Groups in order of their first edge, edges ascending.
+fn place_groups(graph: &PoseGraph, lcs: &[usize]) -> Vec<Vec<usize>> {
+    let ends: Vec<(usize, usize)> = lcs
+        .iter()
+        .map(|&e| {
+            let (a, b) = graph.endpoints()[e];
+            (a.min(b), a.max(b))
+        })
+        .collect();
+    let mut order: Vec<usize> = (0..lcs.len()).collect();
+    order.sort_by_key(|&i| (ends[i], i));
+    let mut parent: Vec<usize> = (0..lcs.len()).collect();
+    fn root(parent: &mut [usize], mut i: usize) -> usize {
+        while parent[i] != i {
+            parent[i] = parent[parent[i]];
+            i = parent[i];
+        }
+        i
+    }
+    for (k, &i) in order.iter().enumerate() {
+        for &j in order[..k].iter().rev() {
+            if ends[j].0 + GROUP_SPAN < ends[i].0 {
+                break;
+            }
+            if ends[j].1.abs_diff(ends[i].1) <= GROUP_SPAN {
+                let (ri, rj) = (root(&mut parent, i), root(&mut parent, j));
+                parent[ri.max(rj)] = ri.min(rj);
+            }
+        }
+    }
+    let mut groups: std::collections::BTreeMap<usize, Vec<usize>> = Default::default();
+    for (i, &e) in lcs.iter().enumerate() {
+        let r = root(&mut parent, i);
+        groups.entry(r).or_default().push(e);
+    }
+    let mut out: Vec<Vec<usize>> = groups
+        .into_values()
+        .map(|mut g| {
+            g.sort_unstable();
+            g
+        })
+        .collect();
+    out.sort_by_key(|g| g[0]);
+    out
+}
+
+/// Stage 3's leave-out test (module docs), greedy: every loop closure of `graph` (weights `w`,
+/// poses `x` at their minimum) and every place group of two or more is a candidate; its
+/// linearised drop Δ_G ([`crate::refine::leave_out_drops`]) is compared with
+/// `s · χ²_{3|G|}⁻¹(1 − α / (2N))` (N candidates, `s` the noise scale); the candidates beyond it,
+/// most significant first, are verified by refining without them, and the first whose actual
+/// drop exceeds the threshold is rejected. Repeated (at most [`LEAVE_OUT_ROUNDS`] groups) until
+/// no candidate is verified. Returns the poses without the rejected groups and the rejected
+/// edges with their group's drop.
+fn leave_out(
+    graph: &PoseGraph,
+    w: &[f64],
+    mut x: Vec<Pose2>,
+    inner: &RefineConfig,
+    alpha: f64,
+    scale: f64,
+) -> Result<(Vec<Pose2>, Vec<RejectedEdge>), SolveError> {
+    let edges = graph.edges();
+    let mut w = w.to_vec();
+    let mut rejected = Vec::new();
+    // The graph of the edges of nonzero weight, and their indices in `graph`.
+    let live = |w: &[f64]| -> Result<(PoseGraph, Vec<usize>), SolveError> {
+        let alive = (0..edges.len()).filter(|&e| w[e] > 0.0).collect();
+        Ok((reweighted(graph, w)?, alive))
+    };
+    let (mut g, mut alive) = live(&w)?;
+    'rounds: for _ in 0..LEAVE_OUT_ROUNDS {
+        let lcs: Vec<usize> = (0..alive.len())
+            .filter(|&l| !edges[alive[l]].is_odometric())
+            .collect();
+        let places = place_groups(&g, &lcs);
+        let drops = crate::refine::leave_out_drops(&g, &x, inner.residual, &places)?;
+        // Candidates: every loop closure alone, and every place group of two or more.
+        let mut groups: Vec<(Vec<usize>, f64)> = Vec::new();
+        for (p, place) in places.iter().enumerate() {
+            groups.extend(
+                place
+                    .iter()
+                    .zip(&drops.edges[p])
+                    .map(|(&l, &d)| (vec![l], d)),
+            );
+            if place.len() > 1 {
+                groups.push((place.clone(), drops.groups[p]));
+            }
+        }
+        let level = 1.0 - alpha / (2.0 * groups.len().max(1) as f64);
+        let threshold = |g: &[usize]| scale * chi2_quantile(3.0 * g.len() as f64, level);
+        // The largest drop per edge left out first: of a false edge and the genuine ones it
+        // contradicts, leaving out either resolves the conflict, and the fewer edges explain it.
+        let mut candidates: Vec<(f64, usize)> = groups
+            .iter()
+            .enumerate()
+            .filter(|(_, (g, d))| *d > threshold(g))
+            .map(|(i, (g, d))| (d / g.len() as f64, i))
+            .collect();
+        candidates.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+        let with = inner.residual.cost(&g, &x);
+        for &(_, i) in candidates.iter().take(LEAVE_OUT_TRIES) {
+            let mut w_i = w.clone();
+            let group = &groups[i].0;
+            for &l in group {
+                w_i[alive[l]] = 0.0;
+            }
+            let (g_i, alive_i) = live(&w_i)?;
+            // Poses of g_i's nodes are x (nodes keep their order).
+            let r = crate::refine::refine(&g_i, &x, inner)?;
+            let drop = with - r.cost();
+            if drop > threshold(group) {
+                let t = threshold(group);
+                rejected.extend(
+                    group
+                        .iter()
+                        .map(|&l| RejectedEdge::of(graph, alive[l], "leave_out", drop, t)),
+                );
+                (w, g, alive, x) = (w_i, g_i, alive_i, r.poses);
+                continue 'rounds;
+            }
+        }
+        break;
+    }
+    rejected.sort_by_key(|r| r.edge);
+    Ok((x, rejected))
+}
 
 /// One robust pass (stages 1–3 of the module docs) from orientations θ₀.
 struct Pass {
     /// The robust poses.
     poses: Vec<Pose2>,
-    /// Loop closures of the pass' graph with χ²_e > Φ at them: (edge, χ²_e).
-    rejected: Vec<(usize, f64)>,
+    /// Loop closures of the pass' graph rejected (edge indices in the pass' graph).
+    rejected: Vec<RejectedEdge>,
     /// Orientation χ² after stage 1 (every edge at full weight).
     chi2_orientation: f64,
     /// Least-squares positions after stage 1.
@@ -502,6 +736,7 @@ fn robust_pass(
     refine: &RefineConfig,
     robust: &RobustConfig,
     (phi_1, phi_3): (f64, f64),
+    scale: f64,
 ) -> Result<Pass, SolveError> {
     let edges = graph.edges();
     let ends = graph.endpoints();
@@ -556,31 +791,19 @@ fn robust_pass(
         x = crate::refine::refine(&reweighted(graph, &w2)?, &x, &inner)?.poses;
     }
     let chi2: Vec<f64> = refine.residual.edge_costs(graph, &x).collect();
-    let mut rejected: Vec<(usize, f64)> = (0..edges.len())
+    let mut rejected: Vec<RejectedEdge> = (0..edges.len())
         .filter(|&e| loop_closure[e] && chi2[e] > phi_3)
-        .map(|e| (e, chi2[e]))
+        .map(|e| RejectedEdge::of(graph, e, "se2_chi2", chi2[e], phi_3))
         .collect();
     if rejected.is_empty() {
-        // Leave-one-out: a false edge the map bent to fit has a small residual but a large
-        // cost drop when it is left out, Δ_e = min F − min F without e (χ²_3 for a genuine
-        // edge in the linear-Gaussian model). Tested for the largest residuals.
         let w_all: Vec<f64> = if w2[0].is_nan() {
             vec![1.0; edges.len()]
         } else {
             w2
         };
-        let with = refine.residual.cost(&reweighted(graph, &w_all)?, &x);
-        let mut order: Vec<usize> = (0..edges.len()).filter(|&e| loop_closure[e]).collect();
-        order.sort_by(|&a, &b| chi2[b].total_cmp(&chi2[a]).then(a.cmp(&b)));
-        for &e in order.iter().take(LEAVE_ONE_OUT) {
-            let mut w_e = w_all.clone();
-            w_e[e] = 0.0;
-            let without = crate::refine::refine(&reweighted(graph, &w_e)?, &x, &inner)?.cost();
-            if with - without > phi_3 {
-                rejected.push((e, with - without));
-            }
-        }
-        rejected.sort_by_key(|r| r.0);
+        let (y, out) = leave_out(graph, &w_all, x, &inner, robust.alpha, scale)?;
+        x = y;
+        rejected = out;
     }
     Ok(Pass {
         poses: x,
@@ -734,6 +957,32 @@ fn screen_with(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Place groups: loop closures whose two ends are each within GROUP_SPAN node indices of
+    /// another's are grouped transitively, in order of first edge; others stay alone.
+    #[test]
+    fn place_groups_join_nearby_loop_closures() {
+        let mut g = PoseGraph::new();
+        let info = Information::diagonal(1.0, 1.0, 1.0);
+        let z = Pose2::new(1.0, 0.0, 0.0);
+        for i in 0..100u64 {
+            g.add_edge(Edge::new(i, i + 1, z, info).unwrap(), Default::default())
+                .unwrap();
+        }
+        let lc = [(0, 50), (5, 55), (12, 64), (30, 90), (80, 20)];
+        for (a, b) in lc {
+            g.add_edge(Edge::new(a, b, z, info).unwrap(), Default::default())
+                .unwrap();
+        }
+        let lcs: Vec<usize> = (100..105).collect();
+        // (0,50)–(5,55)–(12,64) chain (each step ≤ 10 in both ends); (80,20) is (20,80),
+        // 10 from (30,90) in both ends.
+        assert_eq!(
+            place_groups(&g, &lcs),
+            vec![vec![100, 101, 102], vec![103, 104]]
+        );
+        assert_eq!(place_groups(&g, &[100, 103]), vec![vec![100], vec![103]]);
+    }
     use crate::cycles::{Cycle, SignedEdge};
     use crate::graph::{Edge, NodePolicy, Pose2};
 

@@ -429,6 +429,182 @@ pub fn refine(
     })
 }
 
+/// `AᵀB` (3 × 3) of two sparse 3-column matrices given by rows, positions ascending.
+fn sparse_dot3(a: &[(u32, [f64; 3])], b: &[(u32, [f64; 3])]) -> Block {
+    let (mut i, mut j, mut s) = (0, 0, [[0.0; 3]; 3]);
+    while i < a.len() && j < b.len() {
+        match a[i].0.cmp(&b[j].0) {
+            std::cmp::Ordering::Less => i += 1,
+            std::cmp::Ordering::Greater => j += 1,
+            std::cmp::Ordering::Equal => {
+                for (p, row) in s.iter_mut().enumerate() {
+                    for (q, v) in row.iter_mut().enumerate() {
+                        *v += a[i].1[p] * b[j].1[q];
+                    }
+                }
+                i += 1;
+                j += 1;
+            }
+        }
+    }
+    s
+}
+
+/// `rᵀ S⁻¹ r` for the SPD `S = I − [Y_eᵀY_f]` of the edges `ys` (3 rows each) and their
+/// whitened residuals `r`; NaN if S is not positive definite.
+fn downdate_chi2(ys: &[&Vec<(u32, [f64; 3])>], r: &[[f64; 3]]) -> f64 {
+    let n = 3 * ys.len();
+    let mut s = faer::Mat::<f64>::zeros(n, n);
+    for e in 0..ys.len() {
+        for f in 0..=e {
+            let c = sparse_dot3(ys[e], ys[f]);
+            for p in 0..3 {
+                for q in 0..3 {
+                    let v = f64::from(u8::from(e == f && p == q)) - c[p][q];
+                    s[(3 * e + p, 3 * f + q)] = v;
+                    s[(3 * f + q, 3 * e + p)] = v;
+                }
+            }
+        }
+    }
+    let rhs = faer::Mat::<f64>::from_fn(n, 1, |i, _| r[i / 3][i % 3]);
+    match s.llt(faer::Side::Lower) {
+        Ok(l) => {
+            let y = faer::linalg::solvers::Solve::solve(&l, &rhs);
+            (0..n).map(|i| rhs[(i, 0)] * y[(i, 0)]).sum()
+        }
+        Err(_) => f64::NAN,
+    }
+}
+
+/// The drops of [`leave_out_drops`]: of each edge alone, and of each group as a whole.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LeaveOut {
+    /// For each group, the drop of each of its edges left out alone (in the group's order).
+    pub edges: Vec<Vec<f64>>,
+    /// For each group, the drop of the whole group left out (for one edge, its drop).
+    pub groups: Vec<f64>,
+}
+
+/// The linearised **cost drop of leaving edges out**, for each edge of `groups` (disjoint
+/// sets of edges) alone and for each group as a whole: at poses `x` (a minimum of the cost of
+/// `graph` in chart `residual`), with each edge's residual and Jacobian whitened by its
+/// information (`r̃_e = L_eᵀ r_e`, `J̃_e = L_eᵀ J_e`, `Ω_e = L_e L_eᵀ`) and
+/// `H = Σ_e J̃_eᵀ J̃_e`,
+///
+/// ```text
+/// Δ_G = r̃_Gᵀ (I − J̃_G H⁻¹ J̃_Gᵀ)⁻¹ r̃_G,
+/// ```
+///
+/// the exact `min F − min F_{without G}` of the linearised problem (the down-date of a
+/// least-squares problem by the rows of G). For data that follow the model, `Δ_G ~ χ²_{3|G|}`.
+/// A false edge the map bent to fit has a small residual, but a small redundancy
+/// `I − J̃_e H⁻¹ J̃_eᵀ` too, so its Δ is large where its χ²_e is not.
+///
+/// `J̃_G H⁻¹ J̃_Gᵀ = YᵀY` with `Y = R⁻ᵀ J̃_Gᵀ`, R the square-root information factor of H in a
+/// fill-reducing order ([`crate::estimate::incremental::SqrtInfo`]): one sparse forward solve
+/// per edge, along its elimination-tree paths only; never a dense inverse. A removal that
+/// would leave a pose undetermined (`I − YᵀY` not positive definite), or an edge of singular
+/// information, gets NaN.
+pub fn leave_out_drops(
+    graph: &PoseGraph,
+    x: &[Pose2],
+    residual: Residual,
+    groups: &[Vec<usize>],
+) -> Result<LeaveOut, EstimateError> {
+    use crate::estimate::ANCHOR;
+    use crate::estimate::incremental::{SqrtInfo, WhitenScratch, fill_reducing_order};
+    EstimateError::check_size("poses for the graph's nodes", graph.node_count(), x.len())?;
+    let anchored = Anchored::new(graph);
+    let mut out = LeaveOut {
+        edges: groups.iter().map(|g| vec![f64::NAN; g.len()]).collect(),
+        groups: vec![f64::NAN; groups.len()],
+    };
+    if anchored.free == 0 {
+        return Ok(out);
+    }
+    let edges = graph.edges();
+    let ends = graph.endpoints();
+    // Unknown i of node v; an anchor's entries get coefficient 0 on unknown 0.
+    let unknown = |v: usize| Some(anchored.var_of[v]).filter(|&u| u != ANCHOR);
+    type Row = [(usize, f64); 6];
+    let mut white: Vec<Option<([f64; 3], [Row; 3])>> = Vec::with_capacity(edges.len());
+    for (edge, &(a, b)) in edges.iter().zip(ends) {
+        let (r, ja, jb) = residual.linearise(edge.measurement(), x[a], x[b]);
+        // Ω = L Lᵀ: rᵀΩr = ‖Lᵀr‖².
+        let lt = edge
+            .information()
+            .cholesky()
+            .map(|l| std::array::from_fn::<[f64; 3], 3, _>(|i| std::array::from_fn(|j| l[j][i])));
+        white.push(lt.map(|lt| {
+            let rt: [f64; 3] = std::array::from_fn(|k| (0..3).map(|l| lt[k][l] * r[l]).sum());
+            let rows: [Row; 3] = std::array::from_fn(|k| {
+                std::array::from_fn(|c| {
+                    let (v, j, i) = if c < 3 { (a, &ja, c) } else { (b, &jb, c - 3) };
+                    match unknown(v) {
+                        Some(u) => (3 * u + i, (0..3).map(|l| lt[k][l] * j[l][i]).sum()),
+                        None => (0, 0.0),
+                    }
+                })
+            });
+            (rt, rows)
+        }));
+    }
+    let pairs: Vec<(usize, usize)> = ends
+        .iter()
+        .filter_map(|&(a, b)| Some((unknown(a)?, unknown(b)?)))
+        .collect();
+    let vars: Vec<usize> = fill_reducing_order(anchored.free, &pairs, &[])
+        .into_iter()
+        .flat_map(|u| [3 * u, 3 * u + 1, 3 * u + 2])
+        .collect();
+    let rows = || {
+        white
+            .iter()
+            .flatten()
+            .flat_map(|(_, rows)| rows.iter().map(|r| (*r, [0.0])))
+    };
+    let f = SqrtInfo::<1>::factored(&vars, rows()).unwrap_or_else(|| {
+        // Extreme weights: rotate the rows in (the better-conditioned QR).
+        let mut f = SqrtInfo::<1>::new();
+        for &v in &vars {
+            f.push_variable(v);
+        }
+        for (row, beta) in rows() {
+            f.add_row(&row, beta);
+        }
+        f
+    });
+    let mut scratch = WhitenScratch::default();
+    for (g, group) in groups.iter().enumerate() {
+        // Each edge's whitened residual and Y = R⁻ᵀ J̃_eᵀ (by rows).
+        type Part<'a> = (&'a [f64; 3], Vec<(u32, [f64; 3])>);
+        let parts: Vec<Option<Part>> = group
+            .iter()
+            .map(|&e| {
+                white[e]
+                    .as_ref()
+                    .map(|(r, rows)| (r, f.whiten3(rows, &mut scratch)))
+            })
+            .collect();
+        for (slot, part) in out.edges[g].iter_mut().zip(&parts) {
+            if let Some((r, y)) = part {
+                *slot = downdate_chi2(&[y], &[**r]);
+            }
+        }
+        out.groups[g] = if group.len() == 1 {
+            out.edges[g][0]
+        } else if let Some(parts) = parts.into_iter().collect::<Option<Vec<_>>>() {
+            let ys: Vec<&Vec<(u32, [f64; 3])>> = parts.iter().map(|(_, y)| y).collect();
+            let rs: Vec<[f64; 3]> = parts.iter().map(|(r, _)| **r).collect();
+            downdate_chi2(&ys, &rs)
+        } else {
+            f64::NAN
+        };
+    }
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -555,6 +731,60 @@ mod tests {
         assert!(r.costs.windows(2).all(|p| p[1] <= p[0]));
         assert!(r.cost() < c);
         assert!(r.converged, "{}", r.stop);
+    }
+
+    /// The linearised leave-out drops equal the drops of refining without the edges (the
+    /// problem is nearly linear at small noise): for single loop closures, for a group of
+    /// them, and for all chunks of a partition computed at once; a bridge (an odometry edge
+    /// whose removal leaves a pose undetermined) gets NaN.
+    #[test]
+    fn leave_out_drops_match_refining_without_the_edges() {
+        let w = simulate(&SimConfig::new(300, 7)).unwrap();
+        let g = &w.graph;
+        let p0 = w.truth.poses[0];
+        let truth: Vec<Pose2> = w.truth.poses.iter().map(|t| p0.between(*t)).collect();
+        let x = refine(g, &truth, &RefineConfig::default()).unwrap();
+        let lcs: Vec<usize> = (0..g.edge_count())
+            .filter(|&e| !g.edges()[e].is_odometric())
+            .collect();
+        assert!(lcs.len() >= 6);
+        let group = lcs[..4].to_vec();
+        let groups = vec![group.clone(), vec![lcs[4]], vec![lcs[5]], vec![0]];
+        let d = leave_out_drops(g, &x.poses, Residual::Log, &groups).unwrap();
+        let without = |left: &[usize]| {
+            let mut h = PoseGraph::new();
+            for n in g.nodes() {
+                h.add_node(n.id, n.initial).unwrap();
+            }
+            for (e, edge) in g.edges().iter().enumerate() {
+                if !left.contains(&e) {
+                    h.add_edge(*edge, Default::default()).unwrap();
+                }
+            }
+            x.cost()
+                - refine(&h, &x.poses, &RefineConfig::default())
+                    .unwrap()
+                    .cost()
+        };
+        let close = |lin: f64, exact: f64| (lin - exact).abs() <= 0.02 * exact.abs() + 1e-6;
+        let exact = without(&group);
+        assert!(close(d.groups[0], exact), "{} vs {exact}", d.groups[0]);
+        for (i, &e) in group.iter().enumerate() {
+            let exact = without(&[e]);
+            assert!(close(d.edges[0][i], exact), "{} vs {exact}", d.edges[0][i]);
+        }
+        for k in [1, 2] {
+            let exact = without(&groups[k]);
+            assert!(close(d.groups[k], exact), "{} vs {exact}", d.groups[k]);
+            assert_eq!(d.groups[k], d.edges[k][0]);
+        }
+        // Edge 0 is the first odometry edge: node 0 hangs on it unless a loop closure meets it.
+        let first_is_bridge = g.edges().iter().skip(1).all(|e| {
+            let ids = [g.nodes()[0].id];
+            !ids.contains(&e.from()) && !ids.contains(&e.to())
+        });
+        assert!(first_is_bridge, "world 7 has a loop closure at node 0");
+        assert!(d.groups[3].is_nan(), "{}", d.groups[3]);
     }
 
     /// From a start far from the optimum (dead reckoning of a noisy world) the refinement

@@ -37,6 +37,11 @@ fn robust(g: &PoseGraph) -> so2lin::batch::Solution {
     .unwrap()
 }
 
+/// `g` with `count` false loop closures of `kind` (seed `seed`).
+fn injected(g: &PoseGraph, count: usize, kind: OutlierKind, seed: u64) -> so2lin::sim::Corrupted {
+    inject_outliers(g, &OutlierConfig { count, kind, seed }).unwrap()
+}
+
 /// On clean worlds the kernel changes nothing: no loop closure rejected, the same optimum.
 #[test]
 fn the_kernel_leaves_clean_worlds_alone() {
@@ -78,15 +83,7 @@ fn the_kernel_reaches_the_outlier_free_solution_on_simulated_worlds() {
         .into_iter()
         .enumerate()
         {
-            let c = inject_outliers(
-                &w.graph,
-                &OutlierConfig {
-                    count: k,
-                    kind,
-                    seed,
-                },
-            )
-            .unwrap();
+            let c = injected(&w.graph, k, kind, seed);
             let r = robust(&c.graph);
             let on_clean = cost(&w.graph, &r.refined.poses);
             let success = on_clean <= 1.01 * clean;
@@ -295,5 +292,39 @@ fn intel_stream_quarantines_random_false_edges() {
             precision >= 0.95 && recall >= 0.95,
             "K = {k}: {precision} {recall}"
         );
+    }
+}
+
+/// `solve`'s default pipeline reaches the outlier-free solution on the four protocol runs that
+/// the earlier leave-one-out (the five largest residuals only) missed (datasets required):
+/// INTEL + 100 random (seed 1: one false edge the map bent to fit, residual χ² 0.32, 13th
+/// largest) and + 100 clustered (seed 1: two groups whose edges each drop the cost by 1–22 but
+/// together by 751), M3500 + 1000 random (seed 1: a bent false edge; seed 2: a false edge
+/// accepted early whose 107 genuine contradictors the stream quarantined, won back by the
+/// consensus step). Every rejected edge is false except at most one genuine edge per run.
+#[test]
+fn solve_finds_bent_false_edges_groups_and_consensus() {
+    for (name, k, kind, seed) in [
+        ("intel.g2o", 100, OutlierKind::Random, 1),
+        ("intel.g2o", 100, OutlierKind::Clustered, 1),
+        ("M3500.g2o", 1000, OutlierKind::Random, 1),
+        ("M3500.g2o", 1000, OutlierKind::Random, 2),
+    ] {
+        let Some(path) = common::dataset(name) else {
+            return;
+        };
+        let (g, _) = so2lin::io::read_graph(&path, Default::default()).unwrap();
+        let optimum = plain(&g).refined.cost();
+        let c = injected(&g, k, kind, seed);
+        let r = robust(&c.graph);
+        let on_clean = cost(&g, &r.refined.poses);
+        let genuine = r.rejected.iter().filter(|x| !c.is_false(x.edge)).count();
+        let missed = c.false_edges.len() - (r.rejected.len() - genuine);
+        println!(
+            "{name} + {k} {kind:?} seed {seed}: clean-graph cost {on_clean:.2} vs {optimum:.2}; {missed} false edges accepted, {genuine} genuine rejected"
+        );
+        assert!(on_clean <= 1.01 * optimum, "{name} {kind:?} seed {seed}");
+        assert_eq!(missed, 0, "{name} {kind:?} seed {seed}");
+        assert!(genuine <= 1, "{name} {kind:?} seed {seed}");
     }
 }

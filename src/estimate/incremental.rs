@@ -38,6 +38,14 @@ pub(crate) struct Indefinite {
     pub position: usize,
 }
 
+/// Scratch of [`SqrtInfo::whiten3`] (kept zeroed between calls).
+#[derive(Clone, Debug, Default)]
+pub(crate) struct WhitenScratch {
+    w: Vec<[f64; 3]>,
+    mark: Vec<bool>,
+    reach: Vec<u32>,
+}
+
 /// `R x = d` with `K` right-hand sides (see the module docs).
 #[derive(Clone, Debug)]
 pub(crate) struct SqrtInfo<const K: usize> {
@@ -489,6 +497,55 @@ impl<const K: usize> SqrtInfo<K> {
         let mut sum = 0.0;
         self.forward(entries, |_, y| sum += y * y);
         sum
+    }
+
+    /// `Y = R⁻ᵀ [a₀ a₁ a₂]` for three rows on the same variables, as (position, row of Y)
+    /// pairs, positions ascending: `YᵀY' = Aᵀ(AᵀA)⁻¹A'` for two such. A forward solve over the
+    /// reach of the rows' variables (the union of their elimination-tree paths: the positions
+    /// of row k of R are ancestors of k) in a dense scratch, costing the entries of R on those
+    /// rows only.
+    pub fn whiten3<const N: usize>(
+        &self,
+        rows: &[[(usize, f64); N]; 3],
+        s: &mut WhitenScratch,
+    ) -> Vec<(u32, [f64; 3])> {
+        let n = self.len();
+        s.w.resize(n, [0.0; 3]);
+        s.mark.resize(n, false);
+        s.reach.clear();
+        for (q, row) in rows.iter().enumerate() {
+            for &(v, a) in row {
+                if a == 0.0 {
+                    continue;
+                }
+                let mut k = self.pos_of[v] as usize;
+                s.w[k][q] += a;
+                while !s.mark[k] {
+                    s.mark[k] = true;
+                    s.reach.push(k as u32);
+                    match self.rows[k].first() {
+                        Some(&(parent, _)) => k = parent as usize,
+                        None => break,
+                    }
+                }
+            }
+        }
+        s.reach.sort_unstable();
+        let mut y = Vec::with_capacity(s.reach.len());
+        for &k in &s.reach {
+            let k = k as usize;
+            let yk = s.w[k].map(|v| v / self.diag[k]);
+            s.w[k] = [0.0; 3];
+            s.mark[k] = false;
+            for &(j, a) in &self.rows[k] {
+                let wj = &mut s.w[j as usize];
+                for q in 0..3 {
+                    wj[q] -= a * yk[q];
+                }
+            }
+            y.push((k as u32, yk));
+        }
+        y
     }
 
     /// Recompute d from scratch for the rows given (`Rᵀ d = Σ_r a_r β_r`): one forward solve.
