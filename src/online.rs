@@ -422,6 +422,10 @@ const ANGLE_SCALE_MAX_SD: f64 = 0.1;
 struct Held {
     edge: Edge,
     rejected: RejectedEdge,
+    /// For an evicted edge, the cycle count of its re-test: a replay keeps it in quarantine
+    /// until then (re-tested at its arrival, it would pass as it first did, and be accepted
+    /// again).
+    evicted_due: Option<usize>,
 }
 
 /// Name of the angle test in [`RejectedEdge::test`]: the statistic is the residual in σ.
@@ -600,7 +604,14 @@ impl OnlineEstimator {
             statistic: tested,
             threshold: limit,
         };
-        (input, Held { edge, rejected })
+        (
+            input,
+            Held {
+                edge,
+                rejected,
+                evicted_due: None,
+            },
+        )
     }
 
     /// Quarantine the accepted loop closures `evicted` (by input index) and rebuild the
@@ -748,32 +759,34 @@ impl OnlineEstimator {
         evicted: &BTreeMap<usize, Held>,
         warm: (f64, f64),
     ) -> Result<Self, OnlineError> {
-        let mut arrivals: BTreeMap<usize, (Edge, bool)> = BTreeMap::new();
+        // Each arrival, and for those kept in quarantine through the replay (evicted now or
+        // before) the cycle count of their re-test.
+        let mut arrivals: BTreeMap<usize, (Edge, Option<(RejectedEdge, usize)>)> = BTreeMap::new();
         for (e, edge) in self.graph.edges().iter().enumerate() {
-            arrivals.insert(self.input_of[e] as usize, (*edge, false));
+            arrivals.insert(self.input_of[e] as usize, (*edge, None));
         }
         for (&i, h) in &self.held {
-            arrivals.insert(i, (h.edge, false));
+            arrivals.insert(i, (h.edge, h.evicted_due.map(|due| (h.rejected, due))));
         }
         for (&i, h) in evicted {
-            arrivals.insert(i, (h.edge, true));
+            // Re-tested when the graph has grown as from the eviction, not from the edge's
+            // arrival: a replay must not re-admit what it evicts (which was evicted again at
+            // the next step, a replay per step).
+            let due = retest_after(self.counters.cycles, &h.rejected);
+            arrivals.insert(i, (h.edge, Some((h.rejected, due))));
         }
         let mut fresh = Self::new(self.config)?;
         fresh.warm = Some(warm);
         fresh.replaying = true;
-        for (i, (edge, held)) in arrivals {
-            match evicted.get(&i) {
-                Some(h) if held => {
-                    // Re-tested when the graph has grown as from the eviction, not from the
-                    // edge's arrival: a replay must not re-admit what it evicts (which was
-                    // evicted again at the next step, a replay per step).
-                    let due = retest_after(self.counters.cycles, &h.rejected);
-                    let mut step = fresh.hold_until(edge, h.rejected, due);
+        for (edge, kept) in arrivals.into_values() {
+            match kept {
+                Some((rejected, due)) => {
+                    let mut step = fresh.hold_until(edge, rejected, due, true);
                     fresh.arrivals += 1;
                     fresh.retest_due(&mut step);
                     fresh.refresh_counters();
                 }
-                _ => {
+                None => {
                     fresh.add_edge_inner(edge)?;
                 }
             }
@@ -944,14 +957,19 @@ impl OnlineEstimator {
     /// cycles have doubled ([`Self::retest_due`]).
     fn hold(&mut self, edge: Edge, rejected: RejectedEdge) -> Step {
         let due = retest_after(self.counters.cycles, &rejected);
-        self.hold_until(edge, rejected, due)
+        self.hold_until(edge, rejected, due, false)
     }
 
     /// [`Self::hold`] with its re-test at cycle count `due`.
-    fn hold_until(&mut self, edge: Edge, rejected: RejectedEdge, due: usize) -> Step {
+    fn hold_until(
+        &mut self,
+        edge: Edge,
+        rejected: RejectedEdge,
+        due: usize,
+        evicted: bool,
+    ) -> Step {
         let input = rejected.edge;
-        self.held.insert(input, Held { edge, rejected });
-        self.due.insert((due, input));
+        self.put_held(edge, rejected, due, evicted);
         Step {
             edge: input,
             kind: StepKind::Quarantined,
@@ -959,6 +977,21 @@ impl OnlineEstimator {
             quarantined: vec![rejected],
             readmitted: Vec::new(),
         }
+    }
+
+    /// Keep `edge` (input index `rejected.edge`) in quarantine until cycle count `due`.
+    fn put_held(&mut self, edge: Edge, rejected: RejectedEdge, due: usize, evicted: bool) {
+        let input = rejected.edge;
+        let evicted_due = evicted.then_some(due);
+        self.held.insert(
+            input,
+            Held {
+                edge,
+                rejected,
+                evicted_due,
+            },
+        );
+        self.due.insert((due, input));
     }
 
     /// Re-test the quarantined loop closures whose time has come (module docs: re-admission),
@@ -1004,9 +1037,8 @@ impl OnlineEstimator {
                 }
                 Err(rejected) => {
                     let due = retest_after(self.counters.cycles, &rejected);
-                    let edge = held.edge;
-                    self.held.insert(input, Held { edge, rejected });
-                    self.due.insert((due, input));
+                    // An evicted edge that fails its re-test stays an evicted edge.
+                    self.put_held(held.edge, rejected, due, held.evicted_due.is_some());
                 }
             }
         }
