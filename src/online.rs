@@ -54,7 +54,8 @@
 //! replaying every arrival in input order without it (the current scales standing in for the
 //! replay's own until it has 50 cycles): O(m) for that one step, none on clean data (no clean
 //! benchmark file of ≤ 25 000 edges evicts anything). An evicted edge is re-tested like a
-//! quarantined one, counting from its eviction. After a rebuild, [`Step::quarantined`] lists
+//! quarantined one, counting from its eviction, and later replays keep it in quarantine until
+//! then (re-tested at its arrival, it would pass as it first did and be accepted again). After a rebuild, [`Step::quarantined`] lists
 //! the evicted edges and the step's `kind` and `rescreened` describe the step before it
 //! (cycle ids may have changed). An earlier audit that re-tested every accepted cycle at each
 //! doubling of the cycle count evicted genuine loop closures of the clean CSAIL and
