@@ -502,7 +502,7 @@ pub struct LeaveOut {
 /// `I − J̃_e H⁻¹ J̃_eᵀ` too, so its Δ is large where its χ²_e is not.
 ///
 /// `J̃_G H⁻¹ J̃_Gᵀ = YᵀY` with `Y = R⁻ᵀ J̃_Gᵀ`, R the square-root information factor of H in a
-/// fill-reducing order ([`crate::estimate::incremental::SqrtInfo`]): one sparse forward solve
+/// fill-reducing order (the incremental square-root solver the online estimate uses): one sparse forward solve
 /// per edge, along its elimination-tree paths only; never a dense inverse. A removal that
 /// would leave a pose undetermined (`I − YᵀY` not positive definite), or an edge of singular
 /// information, gets NaN.
