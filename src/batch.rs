@@ -46,12 +46,8 @@
 //! met before any later cycle is routed through it; the passes then catch what slipped through.
 //!
 //! After a pass that rejected edges, the graph without them is screened again and solved from
-//! its own θ* by a new pass (at most five passes). Then the **consensus step**: a place group
-//! of two or more rejected loop closures (the largest four) is restored and the graph refined
-//! and given the leave-out test; the swap is kept when fewer edges are left out than were
-//! restored and no loop closure then exceeds Φ. A false edge that arrived before its genuine
-//! contradictors made the stream quarantine them; restored together they outweigh it. Last,
-//! every rejected loop closure whose `χ²_e ≤ s·Φ` (d = 3) at the robust poses is restored (a
+//! its own θ* by a new pass (at most five passes). Then every rejected loop closure (by the
+//! quarantine or by a pass) whose `χ²_e ≤ s·Φ` (d = 3) at the robust poses is restored (a
 //! genuine edge quarantined online because its cycle then ran through a false edge fits the
 //! solution, and so does one an early pass rejected at poses the later passes corrected);
 //! the final poses are the plain refinement on the edges kept: on clean data, the ordinary
@@ -372,7 +368,6 @@ pub fn solve_robust(
         rejected.sort_by_key(|r| r.edge);
         (g, theta0) = without(&rejected, &mut alive)?;
     }
-    x = consensus(graph, x, &mut rejected, refine, robust.alpha, phi.1, scale)?;
     // Rejected loop closures whose SE(2) χ²_e at the robust solution is within Φ are
     // restored (module docs): the online tests saw them through cycles that the solution no
     // longer needs, and an earlier pass through poses that later passes corrected.
@@ -402,75 +397,6 @@ pub fn solve_robust(
         noise_scales,
         seconds: t.elapsed().as_secs_f64(),
     })
-}
-
-/// Rejected place groups tried for restoration per solve ([`consensus`]).
-const CONSENSUS_TRIES: usize = 4;
-
-/// The consensus step (module docs): a place group of two or more rejected loop closures
-/// ([`place_groups`]; largest first, at most [`CONSENSUS_TRIES`]) is restored and the graph
-/// refined and tested by leaving out ([`leave_out`]). The swap is kept when fewer edges were
-/// left out than restored and no loop closure then has `χ²_e > Φ`: the larger set of
-/// mutually consistent loop closures wins (a false edge accepted early had its genuine
-/// contradictors quarantined; restored together, they outweigh it).
-fn consensus(
-    graph: &PoseGraph,
-    mut x: Vec<Pose2>,
-    rejected: &mut Vec<RejectedEdge>,
-    refine: &RefineConfig,
-    alpha: f64,
-    phi: f64,
-    scale: f64,
-) -> Result<Vec<Pose2>, SolveError> {
-    let inner = RefineConfig {
-        iterations: refine.iterations.min(20),
-        ..*refine
-    };
-    let edges = graph.edges();
-    let lcs: Vec<usize> = rejected
-        .iter()
-        .map(|r| r.edge)
-        .filter(|&e| !edges[e].is_odometric())
-        .collect();
-    let mut places: Vec<Vec<usize>> = place_groups(graph, &lcs)
-        .into_iter()
-        .filter(|p| p.len() > 1)
-        .collect();
-    places.sort_by_key(|p| (std::cmp::Reverse(p.len()), p[0]));
-    for place in places.into_iter().take(CONSENSUS_TRIES) {
-        let mut keep = vec![1.0; edges.len()];
-        for r in rejected.iter() {
-            if place.binary_search(&r.edge).is_err() {
-                keep[r.edge] = 0.0;
-            }
-        }
-        let alive: Vec<usize> = (0..edges.len()).filter(|&e| keep[e] > 0.0).collect();
-        let g = reweighted(graph, &keep)?;
-        let y = crate::refine::refine(&g, &x, &inner)?.poses;
-        let (y, out) = leave_out(&g, &vec![1.0; g.edge_count()], y, &inner, alpha, scale)?;
-        if out.len() >= place.len() {
-            continue;
-        }
-        let mut left = vec![false; g.edge_count()];
-        for r in &out {
-            left[r.edge] = true;
-        }
-        let fits = inner
-            .residual
-            .edge_costs(&g, &y)
-            .enumerate()
-            .all(|(l, c)| left[l] || g.edges()[l].is_odometric() || c <= phi);
-        if fits {
-            rejected.retain(|r| place.binary_search(&r.edge).is_err());
-            rejected.extend(out.into_iter().map(|r| RejectedEdge {
-                edge: alive[r.edge],
-                ..r
-            }));
-            rejected.sort_by_key(|r| r.edge);
-            x = y;
-        }
-    }
-    Ok(x)
 }
 
 /// The loop closures the online estimator quarantines when `graph` is streamed in robot order
