@@ -54,25 +54,34 @@ fn stream_rejected(c: &so2lin::sim::Corrupted) -> Vec<usize> {
     est.rejected().iter().map(|r| order[r.edge]).collect()
 }
 
-/// On clean worlds the kernel changes nothing: no loop closure rejected, the same optimum.
+/// On 200 clean worlds the kernel raises no more rejections than α allows, and where it
+/// rejects nothing it returns the plain optimum.
 #[test]
 fn the_kernel_leaves_clean_worlds_alone() {
     let mut rejected_worlds = 0;
-    for seed in 0..10u64 {
+    let worlds = 200u64;
+    for seed in 0..worlds {
         let w = simulate(&SimConfig::new(400, 300 + seed)).unwrap();
-        let p = plain(&w.graph);
         let r = robust(&w.graph);
-        rejected_worlds += usize::from(!r.rejected.is_empty());
-        if r.rejected.is_empty() {
+        if !r.rejected.is_empty() {
+            rejected_worlds += 1;
+            println!("seed {}: {:?}", 300 + seed, r.rejected);
+        }
+        // The plain optimum is compared on a tenth of the worlds (it costs a second solve).
+        if r.rejected.is_empty() && seed % 20 == 0 {
+            let p = plain(&w.graph);
             let (a, b) = (p.refined.cost(), r.refined.cost());
             assert!((a - b).abs() <= 1e-6 * a, "seed {seed}: {a} vs {b}");
         }
     }
-    // The rejection test is family-wise at α = 0.01: a world with a rejection is possible
-    // but rare; two in ten would be a 1-in-2000 event.
+    // Every test of `solve` (quarantine, residual, leave-out) is family-wise at α = 0.01 per
+    // world: about 2 worlds in 200 may have a rejection; 7 or more has probability 0.005.
+    // Measured: 1 (seed 473: one loop closure quarantined online; its last re-test, at the
+    // per-cycle level, still failed: cycle_angle 3.81 σ against 2.58).
+    println!("{rejected_worlds} of {worlds} clean worlds had a rejection");
     assert!(
-        rejected_worlds <= 1,
-        "{rejected_worlds} clean worlds had rejections"
+        rejected_worlds <= 6,
+        "{rejected_worlds} of {worlds} clean worlds had rejections"
     );
 }
 
