@@ -722,7 +722,7 @@ fn robust_pass(
         .map(|e| RejectedEdge::of(graph, e, "se2_chi2", chi2[e], phi_3))
         .collect();
     if rejected.is_empty() {
-        let w_all: Vec<f64> = if w2[0].is_nan() {
+        let w_all: Vec<f64> = if w2.first().is_none_or(|w| w.is_nan()) {
             vec![1.0; edges.len()]
         } else {
             w2

@@ -486,6 +486,12 @@ pub struct LeaveOut {
     pub groups: Vec<f64>,
 }
 
+/// The largest group whose drop as a whole [`leave_out_drops`] computes: its dense
+/// `3|G| × 3|G|` system stays small (a file whose loop closures chain into one group of
+/// thousands must not ask for gigabytes); a larger group gets NaN as a whole, its edges
+/// their own drops.
+pub const MAX_GROUP_EDGES: usize = 64;
+
 /// The linearised **cost drop of leaving edges out**, for each edge of `groups` (disjoint
 /// sets of edges) alone and for each group as a whole: at poses `x` (a minimum of the cost of
 /// `graph` in chart `residual`), with each edge's residual and Jacobian whitened by its
@@ -504,8 +510,8 @@ pub struct LeaveOut {
 /// `J̃_G H⁻¹ J̃_Gᵀ = YᵀY` with `Y = R⁻ᵀ J̃_Gᵀ`, R the square-root information factor of H in a
 /// fill-reducing order (the incremental square-root solver the online estimate uses): one sparse forward solve
 /// per edge, along its elimination-tree paths only; never a dense inverse. A removal that
-/// would leave a pose undetermined (`I − YᵀY` not positive definite), or an edge of singular
-/// information, gets NaN.
+/// would leave a pose undetermined (`I − YᵀY` not positive definite), an edge of singular
+/// information, or a group of more than [`MAX_GROUP_EDGES`] edges as a whole gets NaN.
 pub fn leave_out_drops(
     graph: &PoseGraph,
     x: &[Pose2],
@@ -594,6 +600,8 @@ pub fn leave_out_drops(
         }
         out.groups[g] = if group.len() == 1 {
             out.edges[g][0]
+        } else if group.len() > MAX_GROUP_EDGES {
+            f64::NAN
         } else if let Some(parts) = parts.into_iter().collect::<Option<Vec<_>>>() {
             let ys: Vec<&Vec<(u32, [f64; 3])>> = parts.iter().map(|(_, y)| y).collect();
             let rs: Vec<[f64; 3]> = parts.iter().map(|(r, _)| **r).collect();
