@@ -729,9 +729,6 @@ impl OnlineEstimator {
             }
             let t = self.chord_cycle[e] as usize;
             let limit = closure::threshold(self.eviction_level(t));
-            // The last loop closure that failed through e passes without it (at the
-            // per-cycle level, as a re-test): e is to blame.
-            let blamed = self.passes_without(last, e, scales, self.config.screening.alpha);
             let edges = self.graph.edges();
             let (a, b) = self.graph.endpoints()[e];
             let own = self.basis.probe_avoiding(a, b, e).and_then(|c| {
@@ -744,7 +741,13 @@ impl OnlineEstimator {
             // because the other path is longer): e's own cycle must also be doubtful, beyond
             // the per-cycle threshold.
             let doubtful = closure::fails(tested, closure::threshold(self.config.screening.alpha));
-            if (blamed && doubtful) || closure::fails(tested, limit) {
+            // The last loop closure that failed through e passes without it (at the
+            // per-cycle level, as a re-test): e is to blame. Asked only when it decides: its
+            // path may cross the map (a false edge's does), e's own cycle is short.
+            let alpha = self.config.screening.alpha;
+            if closure::fails(tested, limit)
+                || (doubtful && self.passes_without(last, e, scales, alpha))
+            {
                 let (input, held) = self.held_for_translation(e, tested, limit);
                 evicted.insert(input, held);
             }
