@@ -134,7 +134,8 @@ impl RunningQuantile {
 /// ([`Scale::default`]), d = 1 for the angles ([`Scale::angle`])),
 ///
 /// ```text
-/// s = clamp(min(Q_0.99 / χ²_d⁻¹(0.99),  TAIL_CAP · Q_0.5 / χ²_d⁻¹(0.5)), 0.01, 1)
+/// m = Q_0.5 / χ²_d⁻¹(0.5),
+/// s = clamp(min(Q_0.99 / χ²_d⁻¹(0.99),  TAIL_CAP · m), 0.01, max(1, m))
 /// ```
 ///
 /// once 50 cycles are in, 1 before; a statistic is tested as `χ² / s`. The 99th percentile
@@ -143,7 +144,11 @@ impl RunningQuantile {
 /// 1 % (a few accepted outliers in a hundred cycles raise it, the test loosens, more pass),
 /// the median one of 50 %, and the cap leaves room for tails [`TAIL_CAP`] times heavier
 /// than χ²_d's (`tests/statistics.rs` checks that no clean benchmark file of ≤ 25 000 edges
-/// has a loop closure quarantined with it).
+/// has a loop closure quarantined with it, manhattan.g2o aside). The scale exceeds 1 (declared
+/// noise too tight: the tests widen) only as far as the median shows, so false loop closures
+/// that slipped through cannot loosen the tests beyond what half of the accepted cycles
+/// support. manhattan.g2o declares its angle noise too tight: its angle scale is 1.30, and it
+/// quarantined five genuine loop closures while the scale stopped at one.
 #[derive(Clone, Debug)]
 pub struct Scale {
     /// `χ²_d⁻¹(0.99)` and `χ²_d⁻¹(0.5)`.
@@ -235,8 +240,9 @@ impl Scale {
         }
         let (r99, r50) = self.reference;
         let high = self.high.value().map_or(1.0, |q| q / r99);
-        let body = self.median.value().map_or(1.0, |q| TAIL_CAP * q / r50);
-        high.min(body).clamp(self.floor, 1.0)
+        let median = self.median.value().map_or(1.0, |q| q / r50);
+        high.min(TAIL_CAP * median)
+            .clamp(self.floor, median.max(1.0))
     }
 }
 
@@ -409,7 +415,7 @@ mod tests {
     }
 
     /// The scale is 1 until 50 cycles and for data as declared, the tail ratio otherwise,
-    /// clamped to [0.01, 1].
+    /// clamped to [0.01, max(1, median ratio)].
     #[test]
     fn scale_is_the_tail_ratio() {
         let mut s = Scale::default();
@@ -460,6 +466,27 @@ mod tests {
         }
         assert!((a.value() - 0.5).abs() < 0.05, "{}", a.value());
         assert!((a.tail_ratio() - 1.0).abs() < 0.1, "{}", a.tail_ratio());
+    }
+
+    /// Declared noise too tight: the scale exceeds 1, as far as the median shows and no
+    /// farther — 10 % of outliers far in the tail of data as declared move the median, hence
+    /// the scale, by 17 % (the 99th percentile alone would have followed them to 4).
+    #[test]
+    fn a_scale_above_one_follows_the_median() {
+        let chi2_2 = |k: usize, n: usize| -2.0 * (1.0 - (k as f64 + 0.5) / n as f64).ln();
+        let mut wide = Scale::default();
+        for k in 0..1000 {
+            wide.push(1.5 * chi2_2(k, 1000));
+        }
+        assert!((wide.value() - 1.5).abs() < 0.03, "{}", wide.value());
+        let mut tail = Scale::default();
+        for k in 0..900 {
+            tail.push(chi2_2(k, 900));
+        }
+        for _ in 0..100 {
+            tail.push(40.0);
+        }
+        assert!(tail.value() < 1.2, "{}", tail.value());
     }
 
     /// The covariance of the closure sampled with the edges' noise (right perturbations,

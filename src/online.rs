@@ -30,8 +30,11 @@
 //! integer, in conditional sd, fails when `r / √s_θ > q_t` (with s_θ = 1: the screening's
 //! interval holding no integer). s_θ is estimated like s ([`closure::Scale::angle`]) from `r²`
 //! of the accepted cycles whose conditional sd is below 0.1 (their nearest integer is their
-//! value). The scales sharpen the quarantine's tests only: the screening that determines γ
-//! keeps the declared noise, so the integer guarantee is untouched. A loop closure failing either is
+//! value). The scales calibrate the quarantine's tests only: the screening that determines γ
+//! keeps the declared noise, so the integer guarantee is untouched. A scale above 1 (the
+//! declared noise too tight, as the median of the accepted cycles shows) widens the tests: a
+//! cycle whose interval holds no integer in the declared noise but passes in the noise the data
+//! show is accepted (inconsistent, as with quarantine off), its loop closure kept. A loop closure failing either is
 //! **quarantined**: never added to the graph, the basis (no later cycle is routed through it),
 //! the γ model, the conditioning or the estimate; it is kept with its test, statistic and
 //! threshold ([`OnlineEstimator::rejected`], [`Step::quarantined`]). On data that follow the
@@ -905,7 +908,10 @@ impl OnlineEstimator {
             let r = normalised_residual(m);
             self.angle_scale.push(r * r);
         }
-        if quarantine && (iv.inconsistent || fails(m)) {
+        // With s_θ ≤ 1 a cycle whose interval holds no integer fails this test too; with
+        // s_θ > 1 (the declared angle noise too tight, [`closure::Scale`]) such a cycle is
+        // judged in the noise the data show: accepted as inconsistent, its loop closure kept.
+        if fails(m) {
             self.model.pop_cycle(&cycle);
             self.screener.truncate(t);
             self.sigma2.pop();

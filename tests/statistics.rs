@@ -219,11 +219,30 @@ fn defaults_raise_no_alarm_on_clean_datasets() {
     let mut checked = 0;
     for name in names {
         let (graph, _) = so2lin::io::read_graph(dir.join(&name), Default::default()).unwrap();
-        if graph.edge_count() > 25_000 || name == "manhattan.g2o" {
+        if graph.edge_count() > 25_000 {
             continue;
         }
         let batch = screen(&graph, &BatchConfig::default()).unwrap();
         let (online, rejected) = stream(&graph, ScreeningConfig::default(), true);
+        if name == "manhattan.g2o" {
+            // Its declared angle information is too tight (χ²/ℓ = 1.59): the quarantine tests
+            // in the noise the data show (angle scale above 1, so the 5 cycles that fail in
+            // the declared noise do not all cost their loop closure: 2 failed before the scale
+            // was known); the screening keeps the declared noise and says that cycles fail.
+            assert!(rejected.len() <= 2, "{name}: quarantined {rejected:?}");
+            let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+            for e in graph.edges() {
+                est.add_edge(*e).unwrap();
+            }
+            let scales = est.noise_scales();
+            assert!(scales.angle > 1.2, "{name}: {scales:?}");
+            assert!(
+                !batch.inconsistent.is_empty(),
+                "{name}: declared noise fits?"
+            );
+            checked += 1;
+            continue;
+        }
         assert!(rejected.is_empty(), "{name}: quarantined {rejected:?}");
         for (path, r) in [("batch", &batch), ("online", &online)] {
             let failed: Vec<String> = r.inconsistent.iter().map(|c| c.to_string()).collect();
