@@ -107,9 +107,10 @@ fn datasets_stream_to_the_batch_answer() {
             graph.edges(),
             "{name}: streaming and whole-file reads agree"
         );
-        // No loop closure of a clean dataset is quarantined (tests/statistics.rs), except on
-        // manhattan.g2o, whose declared angle information is too tight for its measurements
-        // (χ²/ℓ = 1.59): there the quarantine is right and the bases differ.
+        // No loop closure of a clean dataset is quarantined (tests/statistics.rs), except for
+        // a while on manhattan.g2o, whose declared angle information is too tight for its
+        // measurements (χ²/ℓ = 1.59): two loop closures are quarantined before its angle
+        // scale is established and re-admitted after, so they join the basis later there.
         let Some((on, ba)) = compare(&name, &graph, &edges, ScreeningConfig::default()) else {
             assert_eq!(
                 name, "manhattan.g2o",

@@ -65,11 +65,13 @@ fn quarantined_false_edges_leave_no_trace() {
         let q: usize = steps.iter().map(|s| s.quarantined.len()).sum();
         let r: usize = steps.iter().map(|s| s.readmitted.len()).sum();
         assert_eq!(q - r, rejected.len(), "seed {seed}");
+        // A quarantined arrival is listed first; an eviction at the same step (and what its
+        // rebuild quarantined) follows.
         for s in &steps {
             if s.kind == StepKind::Quarantined {
-                assert_eq!(s.quarantined.len(), 1);
                 assert_eq!(s.quarantined[0].edge, s.edge);
-                let q = &s.quarantined[0];
+            }
+            for q in &s.quarantined {
                 assert!(q.statistic > q.threshold, "{q:?}");
             }
         }
