@@ -337,19 +337,22 @@ fn solve_finds_bent_false_edges_and_groups() {
     }
 }
 
-/// M3500 + 1000 random false loop closures (seeds 1–2, datasets required), streamed with the
+/// M3500 + 1000 random false loop closures (seeds 1, 2, 4, 5; datasets required), streamed with the
 /// defaults in robot order: the quarantined set's precision and recall ≥ 0.99 each. Seed 2
 /// guards the replay that keeps an evicted edge in quarantine: a later eviction replayed the
 /// stream and re-tested the earlier-evicted false edge at its arrival, where it passed as it
 /// first had, so it was accepted again and 107 genuine loop closures were quarantined through
 /// it (precision 0.903, 994/1101); keeping it held until its re-test date gives 1000/1000.
+/// Seeds 4 and 5 guard the two-blamer examination: six false edges each, whose own cycles on
+/// the paths avoiding them had no power, stayed in while only the last loop closure failing
+/// through them (usually another false one) was asked (precision 0.799 and 0.889).
 #[test]
 fn m3500_stream_keeps_evicted_edges_out_through_later_replays() {
     let Some(path) = common::dataset("M3500.g2o") else {
         return;
     };
     let (g, _) = so2lin::io::read_graph(&path, Default::default()).unwrap();
-    for seed in [1, 2] {
+    for seed in [1, 2, 4, 5] {
         let c = corrupted(&g, 1000, OutlierKind::Random, seed);
         let rejected = stream_rejected(&c);
         let caught = rejected.iter().filter(|&&e| c.is_false(e)).count();
