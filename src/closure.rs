@@ -445,12 +445,12 @@ mod tests {
         let mut t = Scale::default();
         // χ²_2 quantiles: values −2 ln(1 − u) on a grid of u; the 99th percentile is Q99.
         for k in 0..1000 {
-            t.push(-2.0 * (1.0 - (k as f64 + 0.5) / 1000.0).ln());
+            t.push(chi2_2_grid(k, 1000));
         }
         assert!((t.value() - 1.0).abs() < 0.02, "{}", t.value());
         let mut u = Scale::default();
         for k in 0..1000 {
-            u.push(0.05 * -2.0 * (1.0 - (k as f64 + 0.5) / 1000.0).ln());
+            u.push(0.05 * chi2_2_grid(k, 1000));
         }
         assert!((u.value() - 0.05).abs() < 0.002, "{}", u.value());
         let mut z = Scale::default();
@@ -461,15 +461,19 @@ mod tests {
         assert_eq!(z.len(), 100);
     }
 
+    /// The k-th of n evenly spaced χ²_2 quantiles, `−2 ln(1 − (k + ½)/n)`.
+    fn chi2_2_grid(k: usize, n: usize) -> f64 {
+        -2.0 * (1.0 - (k as f64 + 0.5) / n as f64).ln()
+    }
+
     /// Outliers that slipped through (here 10 % of the statistics, far in the tail) move the
     /// 99th percentile but not the median: the scale stays within TAIL_CAP of the clean one
     /// instead of following them. The angle scale uses χ²_1's quantiles.
     #[test]
     fn the_median_caps_a_contaminated_tail() {
-        let chi2_2 = |k: usize, n: usize| -2.0 * (1.0 - (k as f64 + 0.5) / n as f64).ln();
         let mut s = Scale::default();
         for k in 0..900 {
-            s.push(0.02 * chi2_2(k, 900));
+            s.push(0.02 * chi2_2_grid(k, 900));
         }
         for _ in 0..100 {
             s.push(40.0);
@@ -492,15 +496,14 @@ mod tests {
     /// the scale, by 17 % (the 99th percentile alone would have followed them to 4).
     #[test]
     fn a_scale_above_one_follows_the_median() {
-        let chi2_2 = |k: usize, n: usize| -2.0 * (1.0 - (k as f64 + 0.5) / n as f64).ln();
         let mut wide = Scale::default();
         for k in 0..1000 {
-            wide.push(1.5 * chi2_2(k, 1000));
+            wide.push(1.5 * chi2_2_grid(k, 1000));
         }
         assert!((wide.value() - 1.5).abs() < 0.03, "{}", wide.value());
         let mut tail = Scale::default();
         for k in 0..900 {
-            tail.push(chi2_2(k, 900));
+            tail.push(chi2_2_grid(k, 900));
         }
         for _ in 0..100 {
             tail.push(40.0);

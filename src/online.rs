@@ -451,10 +451,12 @@ const ANGLE_SCALE_MAX_SD: f64 = 0.1;
 struct Held {
     edge: Edge,
     rejected: RejectedEdge,
-    /// For an evicted edge, the cycle count of its re-test: a replay keeps it in quarantine
-    /// until then (re-tested at its arrival, it would pass as it first did, and be accepted
-    /// again).
-    evicted_due: Option<usize>,
+    /// The cycle count of its next re-test.
+    due: usize,
+    /// Whether it was evicted (accepted, then quarantined): a replay keeps it in quarantine
+    /// until its re-test (re-tested at its arrival, it would pass as it first did, and be
+    /// accepted again).
+    evicted: bool,
     /// The level of the test it failed at its arrival (the per-cycle α for an evicted edge).
     level: f64,
     /// The noise scale of that test when it failed ([`OnlineEstimator::test_scale`]).
@@ -641,17 +643,33 @@ impl OnlineEstimator {
             statistic: tested,
             threshold: limit,
         };
-        (
-            input,
-            Held {
-                edge,
-                rejected,
-                evicted_due: None,
-                level: self.config.screening.alpha,
-                scale: self.translation_scale(),
-                far: failed_by_far(&rejected),
-            },
-        )
+        // Re-tested when the graph has grown as from the eviction, not from the edge's
+        // arrival: a replay must not re-admit what it evicts (which was evicted again at the
+        // next step, a replay per step).
+        let due = retest_after(self.counters.cycles, failed_by_far(&rejected));
+        let level = self.config.screening.alpha;
+        (input, self.held(edge, rejected, due, true, level))
+    }
+
+    /// `edge` quarantined after failing `rejected` (its test at `level`), re-tested at cycle
+    /// count `due`, with the failed test's current noise scale.
+    fn held(
+        &self,
+        edge: Edge,
+        rejected: RejectedEdge,
+        due: usize,
+        evicted: bool,
+        level: f64,
+    ) -> Held {
+        Held {
+            edge,
+            rejected,
+            due,
+            evicted,
+            level,
+            scale: self.test_scale(rejected.test),
+            far: failed_by_far(&rejected),
+        }
     }
 
     /// Quarantine the accepted loop closures `evicted` (by input index) and rebuild the
@@ -848,15 +866,8 @@ impl OnlineEstimator {
         for (e, edge) in self.graph.edges().iter().enumerate() {
             arrivals.insert(self.input_of[e] as usize, (*edge, None));
         }
-        for (&i, h) in &self.held {
-            arrivals.insert(i, (h.edge, h.evicted_due.map(|due| (h.rejected, due))));
-        }
-        for (&i, h) in evicted {
-            // Re-tested when the graph has grown as from the eviction, not from the edge's
-            // arrival: a replay must not re-admit what it evicts (which was evicted again at
-            // the next step, a replay per step).
-            let due = retest_after(self.counters.cycles, failed_by_far(&h.rejected));
-            arrivals.insert(i, (h.edge, Some((h.rejected, due))));
+        for (&i, h) in self.held.iter().chain(evicted) {
+            arrivals.insert(i, (h.edge, h.evicted.then_some((h.rejected, h.due))));
         }
         let mut fresh = Self::new(self.config)?;
         fresh.warm = Some(warm);
@@ -865,7 +876,8 @@ impl OnlineEstimator {
             match kept {
                 Some((rejected, due)) => {
                     let level = self.config.screening.alpha;
-                    let mut step = fresh.hold_until(edge, rejected, due, true, level);
+                    let held = fresh.held(edge, rejected, due, true, level);
+                    let mut step = fresh.hold_until(held);
                     fresh.arrivals += 1;
                     fresh.retest_due(&mut step);
                     fresh.refresh_counters();
@@ -1044,28 +1056,14 @@ impl OnlineEstimator {
     /// cycles have doubled ([`Self::retest_due`]).
     fn hold(&mut self, edge: Edge, rejected: RejectedEdge, level: f64) -> Step {
         let due = retest_after(self.counters.cycles, failed_by_far(&rejected));
-        self.hold_until(edge, rejected, due, false, level)
+        self.hold_until(self.held(edge, rejected, due, false, level))
     }
 
-    /// [`Self::hold`] with its re-test at cycle count `due` (`evicted`: an evicted edge kept
-    /// in quarantine by a replay).
-    fn hold_until(
-        &mut self,
-        edge: Edge,
-        rejected: RejectedEdge,
-        due: usize,
-        evicted: bool,
-        level: f64,
-    ) -> Step {
-        let held = Held {
-            edge,
-            rejected,
-            evicted_due: evicted.then_some(due),
-            level,
-            scale: self.test_scale(rejected.test),
-            far: failed_by_far(&rejected),
-        };
-        self.keep_held(held, due);
+    /// Quarantine `held` ([`Self::hold`], or a replay keeping an evicted edge).
+    fn hold_until(&mut self, held: Held) -> Step {
+        let rejected = held.rejected;
+        self.held.insert(rejected.edge, held);
+        self.due.insert((held.due, rejected.edge));
         Step {
             edge: rejected.edge,
             kind: StepKind::Quarantined,
@@ -1073,13 +1071,6 @@ impl OnlineEstimator {
             quarantined: vec![rejected],
             readmitted: Vec::new(),
         }
-    }
-
-    /// Keep `held` in quarantine until cycle count `due`.
-    fn keep_held(&mut self, held: Held, due: usize) {
-        let input = held.rejected.edge;
-        self.held.insert(input, held);
-        self.due.insert((due, input));
     }
 
     /// Re-test the quarantined loop closures whose time has come (module docs: re-admission),
@@ -1136,13 +1127,16 @@ impl OnlineEstimator {
                     // by far at the strict per-cycle level is not one at its own level.
                     let due = retest_after(self.counters.cycles, held.far);
                     // An evicted edge that fails its re-test stays an evicted edge.
-                    let held = Held {
-                        rejected,
-                        evicted_due: held.evicted_due.map(|_| due),
-                        scale: self.test_scale(rejected.test),
-                        ..held
-                    };
-                    self.keep_held(held, due);
+                    self.held.insert(
+                        input,
+                        Held {
+                            rejected,
+                            due,
+                            scale: self.test_scale(rejected.test),
+                            ..held
+                        },
+                    );
+                    self.due.insert((due, input));
                 }
             }
         }

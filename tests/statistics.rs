@@ -151,13 +151,18 @@ fn alarm(r: &BatchResult, truth: &[i64]) -> bool {
     !r.inconsistent.is_empty() || matches!(r.outcome, SecondOutcome::NoneInside) || wrong || missed
 }
 
-/// Stream a graph; returns the finished screening and the loop closures quarantined (with
-/// quarantine on, the default; off, every edge is added and the basis is the batch one).
+/// Stream a graph; returns the finished screening, the loop closures quarantined (with
+/// quarantine on, the default; off, every edge is added and the basis is the batch one) and
+/// the noise scales the quarantine estimated.
 fn stream(
     graph: &so2lin::PoseGraph,
     screening: ScreeningConfig,
     quarantine: bool,
-) -> (BatchResult, Vec<so2lin::batch::RejectedEdge>) {
+) -> (
+    BatchResult,
+    Vec<so2lin::batch::RejectedEdge>,
+    so2lin::online::NoiseScales,
+) {
     let mut est = OnlineEstimator::new(OnlineConfig {
         screening,
         quarantine,
@@ -167,13 +172,13 @@ fn stream(
     for e in graph.edges() {
         est.add_edge(*e).unwrap();
     }
-    (est.finish().unwrap(), est.rejected())
+    (est.finish().unwrap(), est.rejected(), est.noise_scales())
 }
 
 /// An online alarm: a quarantined loop closure, or (nothing quarantined, so the basis is the
 /// batch one) an [`alarm`] of the finished screening.
 fn online_alarm(graph: &so2lin::PoseGraph, screening: ScreeningConfig, truth: &[i64]) -> bool {
-    let (r, rejected) = stream(graph, screening, true);
+    let (r, rejected, _) = stream(graph, screening, true);
     !rejected.is_empty() || alarm(&r, truth)
 }
 
@@ -224,7 +229,7 @@ fn defaults_raise_no_alarm_on_clean_datasets() {
             continue;
         }
         let batch = screen(&graph, &BatchConfig::default()).unwrap();
-        let (online, rejected) = stream(&graph, ScreeningConfig::default(), true);
+        let (online, rejected, scales) = stream(&graph, ScreeningConfig::default(), true);
         if name == "manhattan.g2o" {
             // Its declared angle information is too tight (χ²/ℓ = 1.59): the quarantine tests
             // in the noise the data show (angle scale above 1), and re-tests the loop closures
@@ -232,11 +237,6 @@ fn defaults_raise_no_alarm_on_clean_datasets() {
             // 5 cycles that fail in the declared noise cost no loop closure; the screening
             // keeps the declared noise and says that cycles fail.
             assert!(rejected.is_empty(), "{name}: quarantined {rejected:?}");
-            let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
-            for e in graph.edges() {
-                est.add_edge(*e).unwrap();
-            }
-            let scales = est.noise_scales();
             assert!(scales.angle > 1.2, "{name}: {scales:?}");
             assert!(
                 !batch.inconsistent.is_empty(),
