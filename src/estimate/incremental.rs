@@ -592,29 +592,45 @@ impl<const K: usize> SqrtInfo<K> {
         use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
         use faer::linalg::cholesky::llt::factor::LltRegularization;
         use faer::sparse::linalg::cholesky::simplicial;
-        use faer::sparse::{SparseColMat, Triplet};
+        use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
         let mut f = Self::new();
         for &v in order {
             f.push_variable(v);
         }
         let n = order.len();
-        // The upper triangle of AᵀA in positions (duplicates are summed).
-        let mut triplets = Vec::new();
+        // The upper triangle of AᵀA in positions, column by column (duplicates summed in the
+        // rows' order), every diagonal present. Built here rather than from triplets: faer
+        // sorts a triplet list as a whole, which took a third of this function's time.
+        let mut cols: Vec<smallvec::SmallVec<[(usize, f64); 6]>> =
+            (0..n).map(|p| smallvec::smallvec![(p, 0.0)]).collect();
         for (entries, _) in rows.clone() {
             for &(u, a) in &entries {
                 for &(v, b) in &entries {
                     let (pu, pv) = (f.pos_of[u] as usize, f.pos_of[v] as usize);
                     if pu <= pv && a != 0.0 && b != 0.0 {
-                        triplets.push(Triplet::new(pu, pv, a * b));
+                        let col = &mut cols[pv];
+                        match col.iter_mut().find(|(r, _)| *r == pu) {
+                            Some(x) => x.1 += a * b,
+                            None => col.push((pu, a * b)),
+                        }
                     }
                 }
             }
         }
-        for p in 0..n {
-            triplets.push(Triplet::new(p, p, 0.0));
+        let mut col_ptr = Vec::with_capacity(n + 1);
+        let mut row_idx = Vec::new();
+        let mut lower = Vec::new();
+        col_ptr.push(0usize);
+        for col in &mut cols {
+            col.sort_unstable_by_key(|&(r, _)| r);
+            row_idx.extend(col.iter().map(|&(r, _)| r));
+            lower.extend(col.iter().map(|&(_, x)| x));
+            col_ptr.push(row_idx.len());
         }
-        let a = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &triplets).ok()?;
-        let nnz = a.compute_nnz();
+        drop(cols);
+        let pattern = SymbolicSparseColMatRef::new_checked(n, n, &col_ptr, None, &row_idx);
+        let a = SparseColMatRef::new(pattern, &lower);
+        let nnz = row_idx.len();
         let mut mem = MemBuffer::try_new(StackReq::any_of(&[
             simplicial::prefactorize_symbolic_cholesky_scratch::<usize>(n, nnz),
             simplicial::factorize_simplicial_symbolic_cholesky_scratch::<usize>(n),
@@ -623,19 +639,15 @@ impl<const K: usize> SqrtInfo<K> {
         .ok()?;
         let stack = MemStack::new(&mut mem);
         let (mut etree, mut counts) = (vec![0isize; n], vec![0usize; n]);
-        let tree = simplicial::prefactorize_symbolic_cholesky(
-            &mut etree,
-            &mut counts,
-            a.symbolic(),
-            stack,
-        );
+        let tree =
+            simplicial::prefactorize_symbolic_cholesky(&mut etree, &mut counts, pattern, stack);
         let symbolic =
-            simplicial::factorize_simplicial_symbolic_cholesky(a.symbolic(), tree, &counts, stack)
+            simplicial::factorize_simplicial_symbolic_cholesky(pattern, tree, &counts, stack)
                 .ok()?;
         let mut values = vec![0.0; symbolic.len_val()];
         simplicial::factorize_simplicial_numeric_llt(
             &mut values,
-            a.as_ref(),
+            a,
             LltRegularization::default(),
             &symbolic,
             stack,
@@ -685,24 +697,54 @@ pub(crate) fn fill_reducing_order(
         }
     }
     let k = free.len();
-    let mut adj: Vec<Vec<usize>> = vec![Vec::new(); k];
-    for &(a, b) in edges {
-        let (la, lb) = (local[a], local[b]);
-        if la != usize::MAX && lb != usize::MAX && la != lb {
-            adj[la].push(lb);
-            adj[lb].push(la);
+    // The pattern by columns (each with its diagonal, rows ascending, no repeats), counted
+    // into place rather than collected into a list per node.
+    let mut col_ptr = vec![0usize; k + 1];
+    let pairs = || {
+        edges.iter().filter_map(|&(a, b)| {
+            let (la, lb) = (local[a], local[b]);
+            (la != usize::MAX && lb != usize::MAX && la != lb).then_some((la, lb))
+        })
+    };
+    for (la, lb) in pairs() {
+        col_ptr[la + 1] += 1;
+        col_ptr[lb + 1] += 1;
+    }
+    for c in 0..k {
+        col_ptr[c + 1] += col_ptr[c] + 1;
+    }
+    let mut row_idx = vec![0usize; col_ptr[k]];
+    let mut next: Vec<usize> = col_ptr[..k].to_vec();
+    for c in 0..k {
+        row_idx[next[c]] = c;
+        next[c] += 1;
+    }
+    for (la, lb) in pairs() {
+        row_idx[next[la]] = lb;
+        next[la] += 1;
+        row_idx[next[lb]] = la;
+        next[lb] += 1;
+    }
+    // Sort each column and drop repeats (parallel edges), compacting in place.
+    let mut write = 0;
+    let mut start = 0;
+    for c in 0..k {
+        let end = col_ptr[c + 1];
+        row_idx[start..end].sort_unstable();
+        col_ptr[c] = write;
+        let mut last = usize::MAX;
+        for i in start..end {
+            let r = row_idx[i];
+            if r != last {
+                row_idx[write] = r;
+                write += 1;
+                last = r;
+            }
         }
+        start = end;
     }
-    let mut col_ptr = Vec::with_capacity(k + 1);
-    let mut row_idx = Vec::new();
-    col_ptr.push(0usize);
-    for (c, list) in adj.iter_mut().enumerate() {
-        list.push(c);
-        list.sort_unstable();
-        list.dedup();
-        row_idx.extend_from_slice(list);
-        col_ptr.push(row_idx.len());
-    }
+    col_ptr[k] = write;
+    row_idx.truncate(write);
     let mut order: Vec<usize> = match amd_order(&col_ptr, &row_idx) {
         Some(perm) => perm.iter().map(|&p| free[p]).collect(),
         None => free.clone(),
