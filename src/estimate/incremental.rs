@@ -619,17 +619,17 @@ impl<const K: usize> SqrtInfo<K> {
         }
         let mut col_ptr = Vec::with_capacity(n + 1);
         let mut row_idx = Vec::new();
-        let mut lower = Vec::new();
+        let mut a_values = Vec::new();
         col_ptr.push(0usize);
         for col in &mut cols {
             col.sort_unstable_by_key(|&(r, _)| r);
             row_idx.extend(col.iter().map(|&(r, _)| r));
-            lower.extend(col.iter().map(|&(_, x)| x));
+            a_values.extend(col.iter().map(|&(_, x)| x));
             col_ptr.push(row_idx.len());
         }
         drop(cols);
         let pattern = SymbolicSparseColMatRef::new_checked(n, n, &col_ptr, None, &row_idx);
-        let a = SparseColMatRef::new(pattern, &lower);
+        let a = SparseColMatRef::new(pattern, &a_values);
         let nnz = row_idx.len();
         let mut mem = MemBuffer::try_new(StackReq::any_of(&[
             simplicial::prefactorize_symbolic_cholesky_scratch::<usize>(n, nnz),
