@@ -1160,7 +1160,8 @@ impl OnlineEstimator {
             }
         }
         self.estimate.push(Op::Position { e: e32, a, b, y });
-        self.estimate.push(Op::Step);
+        let busy = self.renewal.is_some();
+        self.estimate.push(Op::Step { busy });
     }
 
     /// End of a step: the P_UU factor's renewal advances (the counters are refreshed once,

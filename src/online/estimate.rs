@@ -54,8 +54,10 @@ pub(crate) enum Op {
     Wrap { e: u32, y: f64 },
     /// The position row of edge `e` (from a to b; `y` its unwrapped measurement then).
     Position { e: u32, a: u32, b: u32, y: f64 },
-    /// End of a step.
-    Step,
+    /// End of a step; `busy`: the screening's P_UU factor was being renewed (no renewal of
+    /// these factors starts then: on two cores, two builders would share the core the steps
+    /// do not use).
+    Step { busy: bool },
 }
 
 /// Relative difference below which two edges' position-to-heading weight ratios count as
@@ -264,7 +266,7 @@ impl Estimate {
                         }
                     }
                 }
-                Op::Step => self.after_step(graph),
+                Op::Step { busy } => self.after_step(graph, busy),
             }
         }
         self.pending = pending;
@@ -272,19 +274,20 @@ impl Estimate {
     }
 
     /// End of a step: renewals start or complete. A renewal of the position factor (or of
-    /// the shared one) takes every position row at the current headings.
-    fn after_step(&mut self, graph: &PoseGraph) {
+    /// the shared one) takes every position row at the current headings. None starts while
+    /// `busy`.
+    fn after_step(&mut self, graph: &PoseGraph, busy: bool) {
         let edges = self.factors.position_rows();
         match &mut self.factors {
-            Factors::Shared { both, .. } => both.after_step(true, |both| {
+            Factors::Shared { both, .. } => both.after_step(!busy, |both| {
                 // The headings here (one back-substitution); the rows on the builder.
                 Some(Box::new(relinearise::<3>(both.all(0), graph, edges, 1)))
             }),
             Factors::Split { heads, positions } => {
                 // One builder at a time (heads first).
-                let free = !positions.renewing();
+                let free = !busy && !positions.renewing();
                 heads.after_step(free, |_| None);
-                let free = !heads.renewing();
+                let free = !busy && !heads.renewing();
                 positions.after_step(free, |_| {
                     // The headings here (one back-substitution); the rows on the builder.
                     Some(Box::new(relinearise::<2>(heads.all(0), graph, edges, 0)))
@@ -423,7 +426,7 @@ mod tests {
                 let y = graph.edges()[c].delta() - std::f64::consts::TAU;
                 ops.push(Op::Wrap { e: c as u32, y });
             }
-            ops.extend([Op::Position { e: e32, a, b, y }, Op::Step]);
+            ops.extend([Op::Position { e: e32, a, b, y }, Op::Step { busy: false }]);
             for est in ests.iter_mut() {
                 for &op in &ops {
                     est.push(op);
