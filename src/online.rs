@@ -56,16 +56,17 @@
 //! doubtful (beyond the per-cycle threshold), or when two of them pass. The second clause is
 //! for a false edge whose own cycle has no power (the path avoiding it is long, its covariance
 //! wide): on M3500 + 1000 false edges, seeds 4 and 5, six such edges stayed in and 250 and 125
-//! genuine loop closures were quarantined through them (precision 0.80, 0.89). An eviction quarantines e and **rebuilds** the estimator by
-//! replaying every arrival in input order without it (the current scales standing in for the
-//! replay's own until it has 50 cycles): O(m) for that one step, none on clean data (no clean
-//! benchmark file of ≤ 25 000 edges evicts anything). An evicted edge is re-tested like a
-//! quarantined one, counting from its eviction, and later replays keep it in quarantine until
-//! then (re-tested at its arrival, it would pass as it first did and be accepted again). After a rebuild, [`Step::quarantined`] lists
-//! the evicted edges (and any other edge the rebuild quarantined), [`Step::readmitted`] the
-//! held edges the rebuild accepted, and the step's `kind` and `rescreened` describe the step
-//! before it (cycle ids may have changed). An earlier audit that re-tested every accepted cycle at each
-//! doubling of the cycle count evicted genuine loop closures of the clean CSAIL and
+//! genuine loop closures were quarantined through them (precision 0.80, 0.89). An eviction
+//! quarantines e and **rebuilds** the estimator by replaying every arrival in input order
+//! without it (the current scales standing in for the replay's own until it has 50 cycles):
+//! O(m) for that one step, none on clean data (no clean benchmark file of ≤ 25 000 edges evicts
+//! anything). An evicted edge is re-tested like a quarantined one, counting from its eviction,
+//! and later replays keep it in quarantine until then (re-tested at its arrival, it would pass
+//! as it first did and be accepted again). After a rebuild, [`Step::quarantined`] lists the
+//! evicted edges (and any other edge the rebuild quarantined), [`Step::readmitted`] the held
+//! edges the rebuild accepted, and the step's `kind` and `rescreened` describe the step before
+//! it (cycle ids may have changed). An earlier audit that re-tested every accepted cycle at
+//! each doubling of the cycle count evicted genuine loop closures of the clean CSAIL and
 //! ais2klinik files and was removed.
 //!
 //! **Re-admission**: a quarantined loop closure is re-tested, through the same path a new
@@ -1062,8 +1063,7 @@ impl OnlineEstimator {
     /// Quarantine `held` ([`Self::hold`], or a replay keeping an evicted edge).
     fn hold_until(&mut self, held: Held) -> Step {
         let rejected = held.rejected;
-        self.held.insert(rejected.edge, held);
-        self.due.insert((held.due, rejected.edge));
+        self.keep_held(held);
         Step {
             edge: rejected.edge,
             kind: StepKind::Quarantined,
@@ -1071,6 +1071,13 @@ impl OnlineEstimator {
             quarantined: vec![rejected],
             readmitted: Vec::new(),
         }
+    }
+
+    /// Keep `held` in quarantine until its re-test ([`Held::due`]), indexed by that date.
+    fn keep_held(&mut self, held: Held) {
+        let input = held.rejected.edge;
+        self.due.insert((held.due, input));
+        self.held.insert(input, held);
     }
 
     /// Re-test the quarantined loop closures whose time has come (module docs: re-admission),
@@ -1127,16 +1134,12 @@ impl OnlineEstimator {
                     // by far at the strict per-cycle level is not one at its own level.
                     let due = retest_after(self.counters.cycles, held.far);
                     // An evicted edge that fails its re-test stays an evicted edge.
-                    self.held.insert(
-                        input,
-                        Held {
-                            rejected,
-                            due,
-                            scale: self.test_scale(rejected.test),
-                            ..held
-                        },
-                    );
-                    self.due.insert((due, input));
+                    self.keep_held(Held {
+                        rejected,
+                        due,
+                        scale: self.test_scale(rejected.test),
+                        ..held
+                    });
                 }
             }
         }

@@ -598,33 +598,46 @@ impl<const K: usize> SqrtInfo<K> {
             f.push_variable(v);
         }
         let n = order.len();
-        // The upper triangle of AᵀA in positions, column by column (duplicates summed in the
-        // rows' order), every diagonal present. Built here rather than from triplets: faer
-        // sorts a triplet list as a whole, which took a third of this function's time.
-        let mut cols: Vec<smallvec::SmallVec<[(usize, f64); 6]>> =
-            (0..n).map(|p| smallvec::smallvec![(p, 0.0)]).collect();
+        // The upper triangle of AᵀA in positions, column by column: the diagonal summed apart,
+        // the entries above it sorted (stably: repeats — parallel edges — summed in the rows'
+        // order), every diagonal present. Built here rather than from triplets: faer sorts a
+        // triplet list as a whole, which took a third of this function's time. A column of d
+        // entries costs its sort, O(d log d), however high a node's degree.
+        let mut diag = vec![0.0; n];
+        let mut cols: Vec<smallvec::SmallVec<[(usize, f64); 4]>> = vec![Default::default(); n];
         for (entries, _) in rows.clone() {
             for &(u, a) in &entries {
                 for &(v, b) in &entries {
                     let (pu, pv) = (f.pos_of[u] as usize, f.pos_of[v] as usize);
-                    if pu <= pv && a != 0.0 && b != 0.0 {
-                        let col = &mut cols[pv];
-                        match col.iter_mut().find(|(r, _)| *r == pu) {
-                            Some(x) => x.1 += a * b,
-                            None => col.push((pu, a * b)),
-                        }
+                    if a == 0.0 || b == 0.0 {
+                        continue;
+                    }
+                    if pu == pv {
+                        diag[pu] += a * b;
+                    } else if pu < pv {
+                        cols[pv].push((pu, a * b));
                     }
                 }
             }
         }
         let mut col_ptr = Vec::with_capacity(n + 1);
-        let mut row_idx = Vec::new();
-        let mut a_values = Vec::new();
+        let mut row_idx: Vec<usize> = Vec::new();
+        let mut a_values: Vec<f64> = Vec::new();
         col_ptr.push(0usize);
-        for col in &mut cols {
-            col.sort_unstable_by_key(|&(r, _)| r);
-            row_idx.extend(col.iter().map(|&(r, _)| r));
-            a_values.extend(col.iter().map(|&(_, x)| x));
+        for (p, col) in cols.iter_mut().enumerate() {
+            col.sort_by_key(|&(r, _)| r);
+            let start = row_idx.len();
+            for &(r, x) in col.iter() {
+                match a_values.last_mut() {
+                    Some(last) if row_idx.len() > start && row_idx.last() == Some(&r) => *last += x,
+                    _ => {
+                        row_idx.push(r);
+                        a_values.push(x);
+                    }
+                }
+            }
+            row_idx.push(p);
+            a_values.push(diag[p]);
             col_ptr.push(row_idx.len());
         }
         drop(cols);

@@ -496,9 +496,11 @@ impl<const K: usize> Laplacian<K> {
     /// snapshot takes the right-hand sides computed by the job `relinearise` gives (None: the
     /// current ones), run on the builder's thread; they become the live ones when the renewal
     /// is swapped in.
-    /// A renewal starts only when `may_start` (the owner keeps two builders — of its two
-    /// factors, or of a factor and the screening's P_UU factor — from running at once: on two
-    /// cores they would contend for the one the steps do not use).
+    /// A renewal starts only when `may_start`: the owner starts none while another builder
+    /// runs — of its other factor, or of the screening's P_UU factor (on two cores they would
+    /// contend for the one the steps do not use). A P_UU renewal may still start while this
+    /// one builds: whether this one builds is known only once the steps' operations are
+    /// applied, which a caller that never reads does not pay for.
     pub fn after_step(
         &mut self,
         may_start: bool,
