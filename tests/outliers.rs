@@ -308,8 +308,16 @@ fn intel_stream_quarantines_random_false_edges() {
 /// largest) and + 100 clustered (seed 1: two groups whose edges each drop the cost by 1–22 but
 /// together by 751), M3500 + 1000 random (seed 1: a bent false edge; seed 2: a false edge the
 /// stream accepted again after evicting it, with 107 genuine contradictors quarantined through
-/// it, see `m3500_stream_keeps_evicted_edges_out_through_later_replays`). Every rejected edge is
-/// false except at most one genuine edge per run.
+/// it, see `m3500_stream_keeps_evicted_edges_out_through_later_replays`). And five runs of
+/// M3500 with 1000 false edges that the leave-out test then missed: random seeds 4 and 6 (one
+/// and two false edges the stream accepted, leave-out drops 2.7, 4.1 and 4.3 against the
+/// threshold of about 7.2 from the quarantine's angle scale, 0.25 at its floor; the drops' own
+/// scale gives 1.4–1.6, the largest genuine drop being 0.5–0.7), random seed 7 and clustered
+/// seeds 4 and 7 (false edges covering for each other online, 107–108 genuine loop closures
+/// quarantined through them: found by the passes, then the stream runs again without them;
+/// clustered seed 7 also puts back a genuine loop closure the leave-out test met beside false
+/// edges, which the solution without it fitted at χ²_e 21.7). Every rejected edge is false
+/// except at most one genuine edge per run.
 #[test]
 fn solve_finds_bent_false_edges_and_groups() {
     for (name, k, kind, seed) in [
@@ -317,6 +325,11 @@ fn solve_finds_bent_false_edges_and_groups() {
         ("intel.g2o", 100, OutlierKind::Clustered, 1),
         ("M3500.g2o", 1000, OutlierKind::Random, 1),
         ("M3500.g2o", 1000, OutlierKind::Random, 2),
+        ("M3500.g2o", 1000, OutlierKind::Random, 4),
+        ("M3500.g2o", 1000, OutlierKind::Random, 6),
+        ("M3500.g2o", 1000, OutlierKind::Random, 7),
+        ("M3500.g2o", 1000, OutlierKind::Clustered, 4),
+        ("M3500.g2o", 1000, OutlierKind::Clustered, 7),
     ] {
         let Some(path) = common::dataset(name) else {
             return;
