@@ -3,8 +3,9 @@
 //! - `stream/<input>`: every edge of a file through `add_edge` **in robot order**
 //!   ([`robot_order`]), with the newest pose read after every step ([`OnlineEstimator::newest`])
 //!   as a robot would (M3500 and city10000 when the datasets are present, simulated worlds
-//!   always); `stream/<input>_logged` the same with an MCAP recorder attached (writing to
-//!   memory).
+//!   always; `M3500+1000` is M3500 with 1000 random false loop closures injected as
+//!   `so2lin inject --outliers 1000 --seed 1` does); `stream/<input>_logged` the same with an
+//!   MCAP recorder attached (writing to memory).
 //! - `step/sim<N>/{odometry,loop_closure}`: one more step on a simulated world of N poses
 //!   already streamed: an odometry step to a new pose, or a loop closure re-observing the
 //!   latest odometry edge (a local loop). The state keeps growing across iterations, as on a
@@ -23,7 +24,7 @@ use so2lin::graph::{Edge, Pose2};
 use so2lin::io::{InfoOrder, Reader};
 use so2lin::log::{LogOptions, Recorder};
 use so2lin::online::{OnlineConfig, OnlineEstimator, robot_order};
-use so2lin::sim::{SimConfig, simulate};
+use so2lin::sim::{OutlierConfig, OutlierKind, SimConfig, inject_outliers, simulate};
 
 fn dataset(name: &str) -> Option<Vec<Edge>> {
     let dir = std::env::var_os("SO2LIN_DATASETS")
@@ -32,6 +33,22 @@ fn dataset(name: &str) -> Option<Vec<Edge>> {
     let mut reader = Reader::open(dir.join(name), InfoOrder::Auto).ok()?;
     let edges = reader.edges().collect::<Result<Vec<_>, _>>().ok()?;
     Some(robot_order(&edges))
+}
+
+/// A dataset with `k` random false loop closures (the Vertigo protocol of `so2lin inject`,
+/// seed 1), in robot order.
+fn corrupted(name: &str, k: usize) -> Option<Vec<Edge>> {
+    let dir = std::env::var_os("SO2LIN_DATASETS")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/datasets"));
+    let (graph, _) = so2lin::io::read_graph(dir.join(name), Default::default()).ok()?;
+    let config = OutlierConfig {
+        count: k,
+        kind: OutlierKind::Random,
+        seed: 1,
+    };
+    let bad = inject_outliers(&graph, &config).ok()?;
+    Some(robot_order(bad.graph.edges()))
 }
 
 fn simulated(poses: usize) -> Vec<Edge> {
@@ -61,6 +78,10 @@ fn bench_stream(c: &mut Criterion) {
         if let Some(edges) = dataset(name) {
             inputs.push((name.trim_end_matches(".g2o").to_owned(), edges));
         }
+    }
+    // Issue 11's cost: M3500 with 1000 false loop closures, quarantine and evictions on.
+    if let Some(edges) = corrupted("M3500.g2o", 1000) {
+        inputs.push(("M3500+1000".to_owned(), edges));
     }
     let mut group = c.benchmark_group("stream");
     group.sample_size(10);
