@@ -313,7 +313,7 @@ fn intel_stream_quarantines_random_false_edges() {
 /// and two false edges the stream accepted, leave-out drops 2.7, 4.1 and 4.3 against the
 /// threshold of about 7.2 from the quarantine's angle scale, 0.25 at its floor; the drops' own
 /// scale gives 1.4–1.6, the largest genuine drop being 0.5–0.7), random seed 7 and clustered
-/// seeds 4 and 7 (false edges covering for each other online, 107–108 genuine loop closures
+/// seeds 4 and 7 (false edges covering for each other online, 107–155 genuine loop closures
 /// quarantined through them: found by the passes, then the stream runs again without them;
 /// clustered seed 7 also puts back a genuine loop closure the leave-out test met beside false
 /// edges, which the solution without it fitted at χ²_e 21.7). Every rejected edge is false
