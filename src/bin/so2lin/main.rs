@@ -259,10 +259,12 @@ enum Command {
         /// Solve every surviving hypothesis and rank them by refined cost.
         #[arg(long)]
         all_hypotheses: bool,
-        /// Plain least squares on every edge: no robust kernel. By default loop closures get
-        /// the DCS kernel with the family-wise threshold Φ = χ²_3⁻¹(1 − α/(2·loop closures)),
-        /// those still above Φ at the robust solution are rejected (and listed), and the
-        /// refinement runs on the rest.
+        /// Plain least squares on every edge: no robust kernel. By default the file is first
+        /// streamed through the online quarantine, then loop closures get the DCS kernel with
+        /// the family-wise threshold Φ = χ²_3⁻¹(1 − α/(2·loop closures)); those still above Φ
+        /// at the robust solution, or whose leave-out cost drop exceeds its threshold, are
+        /// rejected (and listed; the stream runs again without those it had accepted), and
+        /// the refinement runs on the rest.
         #[arg(long)]
         no_robust: bool,
         /// Also run the same refinement from dead-reckoned odometry (the local-minimum baseline).
