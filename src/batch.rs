@@ -33,7 +33,7 @@
 //!    [`crate::refine::leave_out_drops`] (sparse forward solves, no dense inverse), and
 //!    compared with `s · χ²_{3|G|}⁻¹(1 − α/(2N))` (N candidates; s the smaller of two bounds
 //!    of the data's noise: the larger of the two noise scales the quarantine estimated, 1
-//!    without it, and — with 200 loop closures or more — the scale the drops themselves show,
+//!    without it, and — with 854 loop closures or more — the scale the drops themselves show,
 //!    `Δ_(k) / χ²_1⁻¹(0.99)`, `Δ_(k)` an upper confidence bound of their 99th percentile
 //!    (`drop_scale`: it bounds the largest of the three components' variance scales, which
 //!    benchmark files declare wrong by different factors; the quarantine's angle scale stops
@@ -157,6 +157,11 @@ pub struct Solution {
     /// The noise scales of the online quarantine that [`solve_robust`] runs first (None for
     /// [`solve`] or with the quarantine off).
     pub noise_scales: Option<crate::online::NoiseScales>,
+    /// The noise scale the loop closures' leave-out drops showed in the last pass
+    /// (`Δ_(k) / χ²_1⁻¹(0.99)`, module docs); the leave-out test used the smaller of it and
+    /// the larger of [`noise_scales`](Self::noise_scales). None when the test did not run or
+    /// had fewer than 854 loop closures.
+    pub drop_scale: Option<f64>,
     /// Wall time of this solution.
     pub seconds: f64,
 }
@@ -276,6 +281,7 @@ pub fn solve(
         refined,
         rejected: Vec::new(),
         noise_scales: None,
+        drop_scale: None,
         seconds: t.elapsed().as_secs_f64(),
     })
 }
@@ -358,7 +364,7 @@ pub fn solve_robust(
     // The loop closures the passes rejected (the stream had accepted them).
     let mut excluded: Vec<RejectedEdge> = Vec::new();
     let mut restreams = 0;
-    let (rejected, noise_scales, first, x, g) = loop {
+    let (rejected, noise_scales, first, x, g, drop_scale) = loop {
         let mut theta0 = theta_h.clone();
         let mut alive: Vec<usize> = (0..edges.len()).collect();
         let mut g = graph.clone();
@@ -381,10 +387,12 @@ pub fn solve_robust(
         let mut x;
         let mut pass = 0;
         let mut found = Vec::new();
+        let mut shown;
         loop {
             pass += 1;
             let p = robust_pass(&g, &theta0, refine, robust, phi, scale)?;
             x = p.poses;
+            shown = p.drop_scale;
             first.get_or_insert((p.chi2_orientation, p.linear));
             if p.rejected.is_empty() || pass == 5 {
                 break;
@@ -403,7 +411,7 @@ pub fn solve_robust(
         // decisions were made with them in the graph (genuine loop closures failing through
         // them), so the stream runs again without them (module docs).
         if found.is_empty() || !robust.quarantine || restreams == RESTREAMS {
-            break (rejected, noise_scales, first, x, g);
+            break (rejected, noise_scales, first, x, g, shown);
         }
         // With the quarantined loop closures of the same places: the members of a group of
         // false edges that the stream held out while one of them stood.
@@ -474,6 +482,7 @@ pub fn solve_robust(
         refined,
         rejected,
         noise_scales,
+        drop_scale,
         seconds: t.elapsed().as_secs_f64(),
     })
 }
@@ -650,6 +659,10 @@ fn place_groups(graph: &PoseGraph, lcs: &[usize]) -> Vec<Vec<usize>> {
     out
 }
 
+/// What [`leave_out`] returns: the poses without the rejected groups, the rejected edges,
+/// and the scale the drops showed in its last round ([`drop_scale`]).
+type LeftOut = (Vec<Pose2>, Vec<RejectedEdge>, Option<f64>);
+
 /// Stage 3's leave-out test (module docs), greedy: every loop closure of `graph` (weights `w`,
 /// poses `x` at their minimum) and every place group of two or more is a candidate; its
 /// linearised drop Δ_G ([`crate::refine::leave_out_drops`]) is compared with
@@ -665,10 +678,11 @@ fn leave_out(
     inner: &RefineConfig,
     alpha: f64,
     scale: f64,
-) -> Result<(Vec<Pose2>, Vec<RejectedEdge>), SolveError> {
+) -> Result<LeftOut, SolveError> {
     let edges = graph.edges();
     let mut w = w.to_vec();
     let mut rejected = Vec::new();
+    let mut shown = None;
     // The graph of the edges of nonzero weight, and their indices in `graph`.
     let live = |w: &[f64]| -> Result<(PoseGraph, Vec<usize>), SolveError> {
         let alive = (0..edges.len()).filter(|&e| w[e] > 0.0).collect();
@@ -695,7 +709,8 @@ fn leave_out(
             }
         }
         let level = 1.0 - alpha / (2.0 * groups.len().max(1) as f64);
-        let scale = scale.min(drop_scale(&drops.edges).unwrap_or(f64::INFINITY));
+        shown = drop_scale(&drops.edges);
+        let scale = scale.min(shown.unwrap_or(f64::INFINITY));
         let threshold = |g: &[usize]| scale * chi2_quantile(3.0 * g.len() as f64, level);
         // The largest drop per edge left out first: of a false edge and the genuine ones it
         // contradicts, leaving out either resolves the conflict, and the fewer edges explain it.
@@ -731,19 +746,17 @@ fn leave_out(
         break;
     }
     rejected.sort_by_key(|r| r.edge);
-    Ok((x, rejected))
+    Ok((x, rejected, shown))
 }
 
-/// Loop closures needed before [`drop_scale`] reads a scale off their drops.
-const DROP_SCALE_MIN: usize = 200;
 /// `χ²_1⁻¹(0.99)`.
 const CHI2_1_Q99: f64 = 6.634_896_601_021_214;
 
 /// The noise scale the loop closures' own leave-out drops show, from above:
 /// `ŝ = Δ_(k) / χ²_1⁻¹(0.99)`, `Δ_(k)` the k-th largest single-edge drop with
 /// `k = ⌊N/100 − 2.58 √(N/100)⌋` (an upper 99.5 % confidence bound of their 99th percentile:
-/// the number of N draws above it is Binomial(N, 0.01)); None when k < 1 (fewer than about
-/// [`DROP_SCALE_MIN`] loop closures).
+/// the number of N draws above it is Binomial(N, 0.01)); None when k < 1, i.e. with fewer
+/// than 854 loop closures (their 99th percentile is not known well enough from above).
 ///
 /// Why it bounds the scale: with the edges' whitened residual components' true variances
 /// `λ_i` times the declared ones, a drop is `Δ_e = Σ_i λ_i z_i²` (z standard normal, at most
@@ -762,7 +775,7 @@ fn drop_scale(drops: &[Vec<f64>]) -> Option<f64> {
         .collect();
     let expected = all.len() as f64 / 100.0;
     let k = (expected - 2.58 * expected.sqrt()).floor();
-    if all.len() < DROP_SCALE_MIN || k < 1.0 {
+    if k < 1.0 {
         return None;
     }
     let k = k as usize;
@@ -780,6 +793,9 @@ struct Pass {
     chi2_orientation: f64,
     /// Least-squares positions after stage 1.
     linear: Vec<Pose2>,
+    /// The scale the leave-out drops showed ([`drop_scale`]; None when the test did not run
+    /// or had too few loop closures).
+    drop_scale: Option<f64>,
 }
 
 fn robust_pass(
@@ -843,6 +859,7 @@ fn robust_pass(
         x = crate::refine::refine(&reweighted(graph, &w2)?, &x, &inner)?.poses;
     }
     let chi2: Vec<f64> = refine.residual.edge_costs(graph, &x).collect();
+    let mut drop_scale = None;
     let mut rejected: Vec<RejectedEdge> = (0..edges.len())
         .filter(|&e| loop_closure[e] && chi2[e] > phi_3)
         .map(|e| RejectedEdge::of(graph, e, "se2_chi2", chi2[e], phi_3))
@@ -853,15 +870,17 @@ fn robust_pass(
         } else {
             w2
         };
-        let (y, out) = leave_out(graph, &w_all, x, &inner, robust.alpha, scale)?;
+        let (y, out, shown) = leave_out(graph, &w_all, x, &inner, robust.alpha, scale)?;
         x = y;
         rejected = out;
+        drop_scale = shown;
     }
     Ok(Pass {
         poses: x,
         rejected,
         chi2_orientation,
         linear,
+        drop_scale,
     })
 }
 
@@ -1073,7 +1092,8 @@ mod tests {
         dirty.extend((0..5).map(|i| vec![100.0 + i as f64]));
         let t = drop_scale(&dirty).unwrap();
         assert!(t >= s && t <= 1.25 * s, "{s} {t}");
-        assert_eq!(drop_scale(&d[..150]), None);
+        assert_eq!(drop_scale(&d[..853]), None);
+        assert!(drop_scale(&d[..854]).is_some());
         // 100 clean files of 2000 loop closures at α = 0.01: a file with any drop beyond the
         // threshold is a false alarm (expected at most α of them).
         let alpha = 0.01;
