@@ -26,11 +26,15 @@ use so2lin::log::{LogOptions, Recorder};
 use so2lin::online::{OnlineConfig, OnlineEstimator, robot_order};
 use so2lin::sim::{OutlierConfig, OutlierKind, SimConfig, inject_outliers, simulate};
 
-fn dataset(name: &str) -> Option<Vec<Edge>> {
-    let dir = std::env::var_os("SO2LIN_DATASETS")
+/// `$SO2LIN_DATASETS`, else `../shared/datasets` beside the repository.
+fn dataset_dir() -> PathBuf {
+    std::env::var_os("SO2LIN_DATASETS")
         .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/datasets"));
-    let mut reader = Reader::open(dir.join(name), InfoOrder::Auto).ok()?;
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/datasets"))
+}
+
+fn dataset(name: &str) -> Option<Vec<Edge>> {
+    let mut reader = Reader::open(dataset_dir().join(name), InfoOrder::Auto).ok()?;
     let edges = reader.edges().collect::<Result<Vec<_>, _>>().ok()?;
     Some(robot_order(&edges))
 }
@@ -38,10 +42,7 @@ fn dataset(name: &str) -> Option<Vec<Edge>> {
 /// A dataset with `k` random false loop closures (the Vertigo protocol of `so2lin inject`,
 /// seed 1), in robot order.
 fn corrupted(name: &str, k: usize) -> Option<Vec<Edge>> {
-    let dir = std::env::var_os("SO2LIN_DATASETS")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/datasets"));
-    let (graph, _) = so2lin::io::read_graph(dir.join(name), Default::default()).ok()?;
+    let (graph, _) = so2lin::io::read_graph(dataset_dir().join(name), Default::default()).ok()?;
     let config = OutlierConfig {
         count: k,
         kind: OutlierKind::Random,

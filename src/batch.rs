@@ -364,7 +364,7 @@ pub fn solve_robust(
     // The loop closures the passes rejected (the stream had accepted them).
     let mut excluded: Vec<RejectedEdge> = Vec::new();
     let mut restreams = 0;
-    let (rejected, noise_scales, first, x, g, drop_scale) = loop {
+    let (mut rejected, noise_scales, first, x, mut g, drop_scale) = loop {
         let mut theta0 = theta_h.clone();
         let mut alive: Vec<usize> = (0..edges.len()).collect();
         let mut g = graph.clone();
@@ -379,10 +379,8 @@ pub fn solve_robust(
         if !rejected.is_empty() {
             (g, theta0) = without(&rejected, &mut alive)?;
         }
-        // The leave-out test and the restoring test in the noise the data show (module
-        // docs): the larger of the two scales, so neither component is tested tighter than
-        // its own.
-        let scale = noise_scales.map_or(1.0, |s| s.angle.max(s.translation));
+        // The leave-out test in the noise the data show (module docs).
+        let scale = noise_scales.map_or(1.0, |s| s.larger());
         let mut first = None;
         let mut x;
         let mut pass = 0;
@@ -415,20 +413,13 @@ pub fn solve_robust(
         }
         // With the quarantined loop closures of the same places: the members of a group of
         // false edges that the stream held out while one of them stood.
-        let place = |e: usize| {
-            let (a, b) = graph.endpoints()[e];
-            (a.min(b), a.max(b))
-        };
-        let near = |(a, b): (usize, usize), (c, d): (usize, usize)| {
-            a.abs_diff(c) <= GROUP_SPAN && b.abs_diff(d) <= GROUP_SPAN
-        };
-        let places: Vec<(usize, usize)> = found.iter().map(|r| place(r.edge)).collect();
+        let out_already = kept(edges.len(), excluded.iter().chain(&found).map(|r| r.edge));
+        let places: Vec<(usize, usize)> = found.iter().map(|r| place(graph, r.edge)).collect();
         let held: Vec<RejectedEdge> = rejected
             .iter()
             .filter(|r| {
-                !excluded.iter().any(|x| x.edge == r.edge)
-                    && !found.iter().any(|f| f.edge == r.edge)
-                    && places.iter().any(|&p| near(p, place(r.edge)))
+                out_already[r.edge] == 1.0
+                    && places.iter().any(|&p| same_place(p, place(graph, r.edge)))
             })
             .copied()
             .collect();
@@ -437,9 +428,7 @@ pub fn solve_robust(
         excluded.sort_by_key(|r| r.edge);
         restreams += 1;
     };
-    let mut rejected = rejected;
-    let mut g = g;
-    let scale = noise_scales.map_or(1.0, |s| s.angle.max(s.translation));
+    let scale = noise_scales.map_or(1.0, |s| s.larger());
     // Rejected loop closures whose SE(2) χ²_e at the robust solution is within Φ are
     // restored (module docs): the online tests saw them through cycles that the solution no
     // longer needs, and an earlier pass through poses that later passes corrected.
@@ -610,18 +599,23 @@ const LEAVE_OUT_ROUNDS: usize = 8;
 /// place group ([`place_groups`]).
 const GROUP_SPAN: usize = 10;
 
+/// The place of edge e: its two node indices, smaller first.
+fn place(graph: &PoseGraph, e: usize) -> (usize, usize) {
+    let (a, b) = graph.endpoints()[e];
+    (a.min(b), a.max(b))
+}
+
+/// Whether two places ([`place`]) are one: both ends within [`GROUP_SPAN`] node indices.
+fn same_place((a, b): (usize, usize), (c, d): (usize, usize)) -> bool {
+    a.abs_diff(c) <= GROUP_SPAN && b.abs_diff(d) <= GROUP_SPAN
+}
+
 /// Loop closures `lcs` (edge indices) grouped by place: `(a, b)` and `(a′, b′)` (node indices,
 /// `a < b`) with `|a − a′| ≤ GROUP_SPAN` and `|b − b′| ≤ GROUP_SPAN` are in one group,
 /// transitively (a run of loop closures of one revisit, or a group of false ones sharing a
 /// measurement). Groups in order of their first edge, edges ascending.
 fn place_groups(graph: &PoseGraph, lcs: &[usize]) -> Vec<Vec<usize>> {
-    let ends: Vec<(usize, usize)> = lcs
-        .iter()
-        .map(|&e| {
-            let (a, b) = graph.endpoints()[e];
-            (a.min(b), a.max(b))
-        })
-        .collect();
+    let ends: Vec<(usize, usize)> = lcs.iter().map(|&e| place(graph, e)).collect();
     let mut order: Vec<usize> = (0..lcs.len()).collect();
     order.sort_by_key(|&i| (ends[i], i));
     let mut parent: Vec<usize> = (0..lcs.len()).collect();
@@ -637,7 +631,7 @@ fn place_groups(graph: &PoseGraph, lcs: &[usize]) -> Vec<Vec<usize>> {
             if ends[j].0 + GROUP_SPAN < ends[i].0 {
                 break;
             }
-            if ends[j].1.abs_diff(ends[i].1) <= GROUP_SPAN {
+            if same_place(ends[j], ends[i]) {
                 let (ri, rj) = (root(&mut parent, i), root(&mut parent, j));
                 parent[ri.max(rj)] = ri.min(rj);
             }
@@ -749,9 +743,6 @@ fn leave_out(
     Ok((x, rejected, shown))
 }
 
-/// `χ²_1⁻¹(0.99)`.
-const CHI2_1_Q99: f64 = 6.634_896_601_021_214;
-
 /// The noise scale the loop closures' own leave-out drops show, from above:
 /// `ŝ = Δ_(k) / χ²_1⁻¹(0.99)`, `Δ_(k)` the k-th largest single-edge drop with
 /// `k = ⌊N/100 − 2.58 √(N/100)⌋` (an upper 99.5 % confidence bound of their 99th percentile:
@@ -780,7 +771,7 @@ fn drop_scale(drops: &[Vec<f64>]) -> Option<f64> {
     }
     let k = k as usize;
     let (_, q, _) = all.select_nth_unstable_by(k - 1, |a, b| b.total_cmp(a));
-    (*q > 0.0).then(|| *q / CHI2_1_Q99)
+    (*q > 0.0).then(|| *q / crate::closure::Q99_1)
 }
 
 /// One robust pass (stages 1–3 of the module docs) from orientations θ₀.
@@ -859,7 +850,7 @@ fn robust_pass(
         x = crate::refine::refine(&reweighted(graph, &w2)?, &x, &inner)?.poses;
     }
     let chi2: Vec<f64> = refine.residual.edge_costs(graph, &x).collect();
-    let mut drop_scale = None;
+    let mut shown = None;
     let mut rejected: Vec<RejectedEdge> = (0..edges.len())
         .filter(|&e| loop_closure[e] && chi2[e] > phi_3)
         .map(|e| RejectedEdge::of(graph, e, "se2_chi2", chi2[e], phi_3))
@@ -870,17 +861,14 @@ fn robust_pass(
         } else {
             w2
         };
-        let (y, out, shown) = leave_out(graph, &w_all, x, &inner, robust.alpha, scale)?;
-        x = y;
-        rejected = out;
-        drop_scale = shown;
+        (x, rejected, shown) = leave_out(graph, &w_all, x, &inner, robust.alpha, scale)?;
     }
     Ok(Pass {
         poses: x,
         rejected,
         chi2_orientation,
         linear,
-        drop_scale,
+        drop_scale: shown,
     })
 }
 
@@ -1058,21 +1046,11 @@ mod tests {
     use crate::graph::{Edge, NodePolicy, Pose2};
 
     /// Drops `λ_θ z₁² + λ_t (z₂² + z₃²)` of n loop closures (angle and translation scaled
-    /// differently, as the benchmark files are), deterministic normal draws.
-    fn drops(n: usize, (la, lt): (f64, f64), state: &mut u64) -> Vec<Vec<f64>> {
-        let mut uniform = || {
-            *state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1_442_695_040_888_963_407);
-            ((*state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-        };
-        let mut normal = || {
-            let (u, v) = (uniform(), uniform());
-            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
-        };
+    /// differently, as the benchmark files are), the simulator's deterministic normal draws.
+    fn drops(n: usize, (la, lt): (f64, f64), noise: &mut crate::sim::Noise) -> Vec<Vec<f64>> {
         (0..n)
             .map(|_| {
-                let (a, x, y) = (normal(), normal(), normal());
+                let (a, x, y) = (noise.normal(), noise.normal(), noise.normal());
                 vec![la * a * a + lt * (x * x + y * y)]
             })
             .collect()
@@ -1083,9 +1061,9 @@ mod tests {
     /// the threshold it sets lets clean data through at the family-wise level.
     #[test]
     fn the_drop_scale_bounds_the_noise_from_above() {
-        let mut state = 7;
+        let mut noise = crate::sim::Noise::seeded(7);
         let (la, lt) = (0.3, 0.02);
-        let d = drops(2000, (la, lt), &mut state);
+        let d = drops(2000, (la, lt), &mut noise);
         let s = drop_scale(&d).unwrap();
         assert!(s >= la && s <= 2.0 * la, "{s}");
         let mut dirty = d.clone();
@@ -1099,7 +1077,7 @@ mod tests {
         let alpha = 0.01;
         let alarms = (0..100)
             .filter(|_| {
-                let d = drops(2000, (la, lt), &mut state);
+                let d = drops(2000, (la, lt), &mut noise);
                 let limit = drop_scale(&d).unwrap() * chi2_quantile(3.0, 1.0 - alpha / 4000.0);
                 d.iter().flatten().any(|&x| x > limit)
             })

@@ -193,7 +193,7 @@ const RSE_1: f64 = 2.332_774_574_888_842;
 /// How many standard errors above 1 the median ratio must be before the scale exceeds 1.
 pub const WIDEN_SE: f64 = 2.0;
 /// `χ²_1⁻¹(0.99)`.
-const Q99_1: f64 = 6.634_896_601_021_214;
+pub(crate) const Q99_1: f64 = 6.634_896_601_021_214;
 /// `χ²_1⁻¹(0.5)`.
 const Q50_1: f64 = 0.454_936_423_119_572_8;
 

@@ -295,6 +295,14 @@ pub struct NoiseScales {
     pub translation_samples: usize,
 }
 
+impl NoiseScales {
+    /// The larger of the two scales: the noise `solve`'s SE(2) tests assume, so that neither
+    /// component is tested tighter than its own.
+    pub fn larger(&self) -> f64 {
+        self.angle.max(self.translation)
+    }
+}
+
 /// Why an input or query was refused. A refused edge leaves the estimator unchanged.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum OnlineError {

@@ -120,13 +120,19 @@ pub enum SimError {
 /// Wrap an angle into (−π, π] ([`crate::graph::wrap_angle`], re-exported).
 pub use crate::graph::wrap_angle;
 
-struct Noise(ChaCha8Rng);
+/// The simulator's random draws (also the crate's tests' deterministic noise).
+pub(crate) struct Noise(ChaCha8Rng);
 
 impl Noise {
+    /// Draws from `seed`.
+    pub(crate) fn seeded(seed: u64) -> Self {
+        Self(ChaCha8Rng::seed_from_u64(seed))
+    }
     fn uniform(&mut self) -> f64 {
         (self.0.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
     }
-    fn normal(&mut self) -> f64 {
+    /// A standard normal draw.
+    pub(crate) fn normal(&mut self) -> f64 {
         // Box–Muller; 1 − u is in (0, 1], so the logarithm is finite.
         let u = 1.0 - self.uniform();
         let v = self.uniform();
@@ -172,7 +178,7 @@ pub fn simulate(config: &SimConfig) -> Result<SimWorld, SimError> {
         check(name, s, s.is_finite() && s > 0.0, "finite, > 0")?;
     }
 
-    let mut rng = Noise(ChaCha8Rng::seed_from_u64(c.seed));
+    let mut rng = Noise::seeded(c.seed);
     let size = c.world_size;
     // Cells of the grid → poses that visited them (for loop-closure candidates).
     let mut visits: Vec<Vec<usize>> = vec![Vec::new(); (size * size) as usize];
@@ -367,7 +373,7 @@ pub fn inject_outliers(graph: &PoseGraph, config: &OutlierConfig) -> Result<Corr
             why: "the graph needs at least 4 nodes (random) or 22 nodes (clustered)",
         });
     }
-    let mut rng = Noise(ChaCha8Rng::seed_from_u64(config.seed));
+    let mut rng = Noise::seeded(config.seed);
     rng.0.set_stream(1);
     let genuine: Vec<&Edge> = graph.edges().iter().filter(|e| !e.is_odometric()).collect();
     let mut existing: std::collections::HashSet<(NodeId, NodeId)> = graph

@@ -231,9 +231,7 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
             crate::print_noise_scales(scales);
         }
         if let Some(d) = best.drop_scale {
-            let quarantine = best
-                .noise_scales
-                .map_or(1.0, |s| s.angle.max(s.translation));
+            let quarantine = best.noise_scales.map_or(1.0, |s| s.larger());
             println!(
                 "leave-out test: the loop closures' cost drops show a noise scale of {d:.3}; tested at {:.3} (the smaller of it and the quarantine's larger scale, {quarantine:.3})",
                 d.min(quarantine)
