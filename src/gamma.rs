@@ -283,6 +283,8 @@ pub struct Conditioner {
     z: Vec<f64>,
     /// Elimination tree: first off-diagonal row of each column (NONE for none yet).
     parent: Vec<u32>,
+    /// Entries of L visited by the triangular solves ([`Self::take_work`]).
+    work: u64,
     // Scratch for the sparse triangular solve.
     y: Vec<f64>,
     mark: Vec<bool>,
@@ -295,6 +297,13 @@ impl Conditioner {
     /// Nothing determined.
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// Entries of L visited by the sparse triangular solves since the last call (then zero):
+    /// a deterministic measure of the time the conditioning took (a solve costs in proportion
+    /// to the entries of the columns it reaches), by which a renewal beside it is scheduled.
+    pub fn take_work(&mut self) -> u64 {
+        std::mem::take(&mut self.work)
     }
 
     /// Number of determined cycles |U|.
@@ -376,6 +385,7 @@ impl Conditioner {
         self.pattern.extend_from_slice(&self.stack[top..]);
         for k in 0..self.pattern.len() {
             let p = self.pattern[k] as usize;
+            self.work += 1 + self.cols[p].len() as u64;
             let yp = self.y[p] / self.diag[p];
             self.y[p] = yp;
             if yp != 0.0 {

@@ -110,6 +110,7 @@ use smallvec::SmallVec;
 
 mod estimate;
 mod laplacian;
+mod renewal;
 
 use estimate::{Estimate, Op};
 
@@ -382,9 +383,13 @@ pub struct OnlineEstimator {
     /// A renewal of L in progress.
     renewal: Option<CondRenewal>,
     /// The thread that builds renewals of L and frees retired ones.
-    worker: laplacian::Worker,
+    worker: renewal::Worker,
     /// Steps that waited for a renewal of L.
     cond_waits: usize,
+    /// The live P_UU factor's work so far ([`Conditioner::take_work`]).
+    cond_work: u64,
+    /// The last renewal builder's work per determined cycle (the same units; 0 before one).
+    rebuild_work_per_row: f64,
     /// Edges given so far (accepted or quarantined): the next input index.
     arrivals: usize,
     /// Input index of each edge of the graph.
@@ -508,7 +513,11 @@ const FAR: f64 = 4.0;
 
 /// A renewal of the P_UU factor built beside the live one ([`OnlineEstimator::maybe_reorder`]).
 struct CondRenewal {
-    build: laplacian::Beside<Conditioner, CondMsg>,
+    /// Collected at the first step that is at least this one ...
+    ready_at: u64,
+    /// ... and at which the live factor's work ([`Conditioner::take_work`]) has reached this.
+    work_due: u64,
+    build: renewal::Beside<(Conditioner, GammaModel), Conditioner, CondMsg>,
     /// Cycles of the model sent to the builder.
     cycles_sent: usize,
     /// Determinations (positions in the live factor's order) sent to the builder.
@@ -538,6 +547,12 @@ impl std::fmt::Debug for OnlineEstimator {
 const REORDER_MIN_ROWS: usize = 256;
 /// Reorder when L's nonzeros per row exceed this multiple of the last reordered factor's.
 const REORDER_FILL_RATIO: f64 = 1.5;
+/// A renewal of the P_UU factor is collected once the live factor has done this many times
+/// the work its builder is expected to do (the builder may share its core with the
+/// estimate's).
+const REORDER_WORK_MARGIN: f64 = 1.5;
+/// The P_UU builder's fill-reducing order, in entries of a solve per nonzero of P_γ.
+const ORDER_WORK_PER_NONZERO: f64 = 20.0;
 
 impl OnlineEstimator {
     /// A new estimator with no nodes.
@@ -562,8 +577,10 @@ impl OnlineEstimator {
             theta: Vec::new(),
             fill_after_reorder: f64::INFINITY,
             renewal: None,
-            worker: laplacian::Worker::default(),
+            worker: renewal::Worker::default(),
             cond_waits: 0,
+            cond_work: 0,
+            rebuild_work_per_row: 0.0,
             arrivals: 0,
             input_of: Vec::new(),
             held: BTreeMap::new(),
@@ -1171,8 +1188,7 @@ impl OnlineEstimator {
             }
         }
         self.estimate.push(Op::Position { e: e32, a, b, y });
-        let busy = self.renewal.is_some();
-        self.estimate.push(Op::Step { busy });
+        self.estimate.push(Op::Step);
     }
 
     /// End of a step: the P_UU factor's renewal advances (the counters are refreshed once,
@@ -1301,14 +1317,12 @@ impl OnlineEstimator {
         let determined = self.screener.cond.determined();
         let model = self.model.rows_only();
         // The rebuilt factor is small (fill-reducing order) while the live one keeps filling:
-        // collect it soon (the builder's work grows with the rows, not with the live fill) —
-        // but not before the builder can be done: rebuilding costs about rows · f² for a
-        // fresh fill of f ≤ per_row per row, a step's solve up to rows · per_row, so the
-        // builder needs up to per_row steps' worth of work. That bound matters only when P_γ
-        // is dense (complete graphs: per_row ≈ rows/2); elsewhere rows/64 is the larger.
-        let delay = laplacian::MIN_DELAY
-            .max(rows as u64 / 64)
-            .max(per_row.ceil() as u64);
+        // collect it as soon as the builder can be done. That is counted in the live factor's
+        // own work (below), so a collection does not come later in time as the live steps grow
+        // slower; and at least per_row steps after the start: rebuilding costs about rows · f²
+        // for a fresh fill of f ≤ per_row per row, a step's solve up to rows · per_row (the
+        // bound that matters when P_γ is dense: complete graphs, per_row ≈ rows/2).
+        let delay = laplacian::MIN_DELAY.max(per_row.ceil() as u64);
         let build = move || {
             let fresh = Conditioner::rebuilt(&model, &determined, 0).ok()?;
             Some((fresh, model))
@@ -1327,11 +1341,21 @@ impl OnlineEstimator {
         };
         let finish = |(fresh, _): (Conditioner, GammaModel)| fresh;
         let ready_at = self.counters.steps as u64 + delay;
+        // The builder's work in the live factor's units: its solves, expected from the last
+        // one's per determined cycle (at least one solve of the current fill per row), and the
+        // fill-reducing order it computes first, about as long per nonzero of P_γ as
+        // ORDER_WORK_PER_NONZERO entries of a solve (measured on city10000: 10.8 ms for 115 000
+        // nonzeros, against 5 ns per entry).
+        let expected = rows as f64 * self.rebuild_work_per_row.max(per_row)
+            + ORDER_WORK_PER_NONZERO * self.model.nnz() as f64;
+        self.cond_work += self.screener.cond.take_work();
+        let work_due = self.cond_work + (REORDER_WORK_MARGIN * expected) as u64;
         let worker = &mut self.worker;
-        if let Some(build) =
-            laplacian::Beside::start(worker, "so2lin-reorder", ready_at, build, apply, finish)
+        if let Some(build) = renewal::Beside::start(worker, "so2lin-reorder", build, apply, finish)
         {
             self.renewal = Some(CondRenewal {
+                ready_at,
+                work_due,
                 build,
                 cycles_sent: self.model.len(),
                 determined_sent: rows,
@@ -1359,14 +1383,16 @@ impl OnlineEstimator {
             self.renewal = None;
             return;
         }
-        let step = self.counters.steps as u64;
-        let fresh = match r.build.collect(step, &mut self.cond_waits) {
-            laplacian::Collected::NotYet => return,
-            laplacian::Collected::Failed => None,
-            laplacian::Collected::Ready(fresh) => Some(fresh),
+        self.cond_work += self.screener.cond.take_work();
+        if (self.counters.steps as u64) < r.ready_at || self.cond_work < r.work_due {
+            return;
+        }
+        let Some(r) = self.renewal.take() else { return };
+        let renewal::Collected::Ready(mut fresh) = r.build.collect(&mut self.cond_waits) else {
+            return;
         };
-        self.renewal = None;
-        let Some(fresh) = fresh else { return };
+        // The builder's own work (its build and the changes it applied).
+        self.rebuild_work_per_row = fresh.take_work() as f64 / fresh.len().max(1) as f64;
         let old = std::mem::replace(&mut self.screener.cond, fresh);
         self.worker.retire("so2lin-reorder", old);
         let rows = self.screener.cond.len().max(1);

@@ -57,6 +57,8 @@ pub(crate) struct SqrtInfo<const K: usize> {
     rows: Vec<Vec<(u32, f64)>>,
     d: Vec<[f64; K]>,
     nnz: usize,
+    /// Entries of R read or written by rotations and forward solves ([`Self::take_work`]).
+    work: u64,
     // Scratch (kept to avoid allocations per step).
     w: Vec<(u32, f64)>,
     w_next: Vec<(u32, f64)>,
@@ -79,6 +81,7 @@ impl<const K: usize> Default for SqrtInfo<K> {
             rows: Vec::new(),
             d: Vec::new(),
             nnz: 0,
+            work: 0,
             w: Vec::new(),
             w_next: Vec::new(),
             spare_row: Vec::new(),
@@ -99,6 +102,13 @@ impl<const K: usize> SqrtInfo<K> {
     /// Number of variables.
     pub fn len(&self) -> usize {
         self.diag.len()
+    }
+
+    /// Entries of R visited by the row updates since the last call (then zero): a
+    /// deterministic measure of the time this factor's updates took (a rotation or forward
+    /// solve costs in proportion to the entries of the rows on its path).
+    pub fn take_work(&mut self) -> u64 {
+        std::mem::take(&mut self.work)
     }
 
     /// Nonzeros of R (diagonal included).
@@ -169,6 +179,7 @@ impl<const K: usize> SqrtInfo<K> {
             }
             let (k, wk) = w[head];
             let k = k as usize;
+            self.work += (1 + self.rows[k].len() + w.len() - head) as u64;
             let r = self.diag[k];
             let (c, s, rho) = if downdate {
                 let rho2 = r * r - wk * wk;
@@ -376,6 +387,7 @@ impl<const K: usize> SqrtInfo<K> {
             }
             let (k, ak) = w[head];
             let k = k as usize;
+            self.work += (1 + self.rows[k].len() + w.len() - head) as u64;
             let y = ak / self.diag[k];
             visit(&mut self.d[k], y);
             // a_j -= R_kj y for j in row k, merged with the rest of w.

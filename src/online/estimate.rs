@@ -54,10 +54,8 @@ pub(crate) enum Op {
     Wrap { e: u32, y: f64 },
     /// The position row of edge `e` (from a to b; `y` its unwrapped measurement then).
     Position { e: u32, a: u32, b: u32, y: f64 },
-    /// End of a step; `busy`: the screening's P_UU factor was being renewed (no renewal of
-    /// these factors starts then: on two cores, two builders would share the core the steps
-    /// do not use).
-    Step { busy: bool },
+    /// End of a step.
+    Step,
 }
 
 /// Relative difference below which two edges' position-to-heading weight ratios count as
@@ -266,7 +264,7 @@ impl Estimate {
                         }
                     }
                 }
-                Op::Step { busy } => self.after_step(graph, busy),
+                Op::Step => self.after_step(graph),
             }
         }
         self.pending = pending;
@@ -274,20 +272,19 @@ impl Estimate {
     }
 
     /// End of a step: renewals start or complete. A renewal of the position factor (or of
-    /// the shared one) takes every position row at the current headings. None starts while
-    /// `busy`.
-    fn after_step(&mut self, graph: &PoseGraph, busy: bool) {
+    /// the shared one) takes every position row at the current headings.
+    fn after_step(&mut self, graph: &PoseGraph) {
         let edges = self.factors.position_rows();
         match &mut self.factors {
-            Factors::Shared { both, .. } => both.after_step(!busy, |both| {
+            Factors::Shared { both, .. } => both.after_step(true, |both| {
                 // The headings here (one back-substitution); the rows on the builder.
                 Some(Box::new(relinearise::<3>(both.all(0), graph, edges, 1)))
             }),
             Factors::Split { heads, positions } => {
                 // One builder at a time (heads first).
-                let free = !busy && !positions.renewing();
+                let free = !positions.renewing();
                 heads.after_step(free, |_| None);
-                let free = !busy && !heads.renewing();
+                let free = !heads.renewing();
                 positions.after_step(free, |_| {
                     // The headings here (one back-substitution); the rows on the builder.
                     Some(Box::new(relinearise::<2>(heads.all(0), graph, edges, 0)))
@@ -426,7 +423,7 @@ mod tests {
                 let y = graph.edges()[c].delta() - std::f64::consts::TAU;
                 ops.push(Op::Wrap { e: c as u32, y });
             }
-            ops.extend([Op::Position { e: e32, a, b, y }, Op::Step { busy: false }]);
+            ops.extend([Op::Position { e: e32, a, b, y }, Op::Step]);
             for est in ests.iter_mut() {
                 for &op in &ops {
                     est.push(op);

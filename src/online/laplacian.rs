@@ -39,13 +39,15 @@
 //! by a sparse Cholesky ([`SqrtInfo::factored`]; rows rotated in when extreme weights defeat
 //! it). Every later change (node, row, removed prior, moved right-hand side) is sent to the
 //! builder, which applies it to its factor as it comes, so the live factor's steps replay
-//! nothing. The new factor is collected a fixed number of steps after the start
-//! ([`DELAY_PER_ROW`] steps per nonzero the renewed factor is expected to have — the last
-//! renewal's fill per row times the variables — at least [`MIN_DELAY`]: a step count, so the run
-//! stays deterministic whatever the threads' timing; the step waits only if the builder is
-//! still busy then) and swapped in.
-//! Every answer in between comes from the live factor: exact at every step.
+//! nothing ([`super::renewal`]). The new factor is collected once the live factor has done
+//! [`WORK_PER_NONZERO`] units of its own work ([`SqrtInfo::take_work`]) per nonzero the
+//! renewed factor is expected to have (the last renewal's fill per row times the variables),
+//! and at least [`MIN_DELAY`] steps after the start — counts, not clocks, so the run stays
+//! deterministic whatever the threads' timing; the step waits only if the builder is still
+//! busy then — and swapped in. Every answer in between comes from the live factor: exact at
+//! every step.
 
+use super::renewal::{Beside, Collected, Worker};
 use crate::estimate::incremental::{SqrtInfo, fill_reducing_order};
 use crate::graph::UnionFind;
 
@@ -58,9 +60,23 @@ const APPENDED_FRACTION: usize = 8;
 const MIN_VARIABLES: usize = 256;
 /// Steps between starting a renewal and collecting it, at least.
 pub(crate) const MIN_DELAY: u64 = 32;
-/// Steps between starting a renewal and collecting it, per nonzero expected in the renewed
-/// factor (the builder's work grows with it).
-pub(crate) const DELAY_PER_ROW: f64 = 0.002;
+/// Work of the live factor ([`SqrtInfo::take_work`], entries visited) between starting a
+/// renewal and collecting it, per nonzero expected in the renewed factor. Measured on M3500,
+/// city10000 and a 10 000-pose simulated world: a build (its fill-reducing order included)
+/// takes 70–150 ns per nonzero of the factor it builds, the live factor 2–6 ns per entry
+/// visited, and the screening's builder may share the builder's core. Counting the live
+/// factor's work instead of steps keeps the collection in step with the builder when the live
+/// steps grow slow (a delay in steps let a 10 000-pose world's live factor fill for hundreds
+/// of milliseconds while its steps slowed down, and the builders of M3500 were waited for at
+/// 50 of its 5 453 steps, up to 2.4 ms).
+const WORK_PER_NONZERO: f64 = 64.0;
+
+/// When a renewal is collected: at the first step that is at least `step` and at which the
+/// live factors' work has reached `work`.
+struct Due {
+    step: u64,
+    work: u64,
+}
 
 /// A change to the system, sent to a renewal's builder so that it keeps its copy up to date
 /// itself (the live factor's steps replay nothing).
@@ -85,156 +101,7 @@ type Built<const K: usize> = (SqrtInfo<K>, Vec<[f64; K]>);
 pub(crate) type Relinearise<const K: usize> = Box<dyn FnOnce(&mut [[f64; K]]) + Send>;
 
 /// A renewal of a Laplacian's factor in progress.
-type Renewal<const K: usize> = Beside<Built<K>, Msg<K>>;
-
-/// A job for a [`Worker`].
-type Job = Box<dyn FnOnce() + Send>;
-
-/// A long-lived thread that runs jobs in the order given: builds of renewed factors, and the
-/// freeing of retired ones (a factor's thousands of rows cost a step about a millisecond to
-/// free). One thread for the estimator's life, so no step pays for starting a thread after the
-/// first renewal.
-#[derive(Default)]
-pub(crate) struct Worker {
-    tx: Option<std::sync::mpsc::Sender<Job>>,
-}
-
-impl Worker {
-    /// Run `job` on the worker thread (started on first use as `name`). False when no thread
-    /// can be started or it is gone: the caller goes on without.
-    pub fn run(&mut self, name: &str, job: Job) -> bool {
-        if self.tx.is_none() {
-            let (tx, rx) = std::sync::mpsc::channel::<Job>();
-            let spawned = std::thread::Builder::new()
-                .name(name.into())
-                .spawn(move || {
-                    lower_priority();
-                    for job in rx {
-                        job();
-                    }
-                })
-                .is_ok();
-            if !spawned {
-                return false;
-            }
-            self.tx = Some(tx);
-        }
-        match &self.tx {
-            Some(tx) if tx.send(job).is_ok() => true,
-            _ => {
-                self.tx = None;
-                false
-            }
-        }
-    }
-
-    /// Free `value` on the worker thread (here if there is none).
-    pub fn retire<T: Send + 'static>(&mut self, name: &str, value: T) {
-        self.run(name, Box::new(move || drop(value)));
-    }
-}
-
-/// Lower the calling thread's scheduling priority (nice 10 on Linux, where priorities are per
-/// thread): a renewal's builder must not take the core the robot's steps run on when the cores
-/// are few (a step preempted by a builder was the worst step on two cores). Elsewhere nothing.
-fn lower_priority() {
-    #[cfg(target_os = "linux")]
-    // SAFETY: setpriority with who = 0 changes only the calling thread's nice value; it reads
-    // no memory of ours. A refusal (no permission) leaves the priority as it was.
-    unsafe {
-        libc::setpriority(libc::PRIO_PROCESS, 0, 10);
-    }
-}
-
-/// What a [`Beside`]'s builder receives: a change to apply, or the end.
-enum Envelope<M> {
-    Change(M),
-    Done,
-}
-
-/// A factor built beside the live one on a [`Worker`], kept up to date by the builder itself
-/// from the changes sent to it ([`Self::send`]: every change the live system makes after the
-/// snapshot), and collected at a step fixed when it was started — so the run does not depend
-/// on the threads' timing. The one renewal mechanism of the estimate's factors and of the
-/// factor of P_UU; they differ only in what they build and which changes they send.
-pub(crate) struct Beside<T, M> {
-    tx: std::sync::mpsc::Sender<Envelope<M>>,
-    result: std::sync::mpsc::Receiver<Option<T>>,
-    ready_at: u64,
-}
-
-/// What [`Beside::collect`] found.
-pub(crate) enum Collected<T> {
-    /// The collection step has not come.
-    NotYet,
-    /// The built factor, up to date with every change sent.
-    Ready(T),
-    /// The build failed or the builder is gone: the live factor goes on.
-    Failed,
-}
-
-impl<T: Send + 'static, M: Send + 'static> Beside<T, M> {
-    /// Start a builder on `worker`, to be collected at step `ready_at`: `build` makes the
-    /// fresh state from the snapshot it owns, `apply` applies each change sent later (None:
-    /// the renewal fails), `finish` turns the state into the result. None when the worker
-    /// cannot take it: the live factor goes on, and the owner may try again later.
-    pub fn start<S>(
-        worker: &mut Worker,
-        name: &str,
-        ready_at: u64,
-        build: impl FnOnce() -> Option<S> + Send + 'static,
-        mut apply: impl FnMut(&mut S, M) -> Option<()> + Send + 'static,
-        finish: impl FnOnce(S) -> T + Send + 'static,
-    ) -> Option<Self> {
-        let (tx, rx) = std::sync::mpsc::channel::<Envelope<M>>();
-        let (done, result) = std::sync::mpsc::sync_channel(1);
-        let job: Job = Box::new(move || {
-            let built = (|| {
-                let mut state = build()?;
-                for envelope in rx {
-                    match envelope {
-                        Envelope::Change(m) => apply(&mut state, m)?,
-                        Envelope::Done => return Some(finish(state)),
-                    }
-                }
-                None
-            })();
-            let _ = done.send(built);
-        });
-        worker.run(name, job).then_some(Self {
-            tx,
-            result,
-            ready_at,
-        })
-    }
-
-    /// Tell the builder about a change; false when it is gone (the owner drops the renewal).
-    pub fn send(&self, m: M) -> bool {
-        self.tx.send(Envelope::Change(m)).is_ok()
-    }
-
-    /// At step `step`: before the renewal's step, [`Collected::NotYet`]; from it on, the
-    /// built factor (waiting for the builder, and counting in `waits` a step that found it
-    /// still busy), or [`Collected::Failed`].
-    pub fn collect(&self, step: u64, waits: &mut usize) -> Collected<T> {
-        use std::sync::mpsc::TryRecvError;
-        if step < self.ready_at {
-            return Collected::NotYet;
-        }
-        if self.tx.send(Envelope::Done).is_err() {
-            return Collected::Failed;
-        }
-        let got = match self.result.try_recv() {
-            Ok(got) => got,
-            Err(TryRecvError::Empty) => {
-                *waits += 1;
-                self.result.recv().ok().flatten()
-            }
-            Err(TryRecvError::Disconnected) => None,
-        };
-        got.map_or(Collected::Failed, Collected::Ready)
-    }
-}
+type Renewal<const K: usize> = Beside<(SqrtInfo<K>, Rows<K>), Built<K>, Msg<K>>;
 
 /// The data a factor is built from (a snapshot goes to the builder thread).
 #[derive(Clone)]
@@ -283,7 +150,9 @@ pub(crate) struct Laplacian<const K: usize> {
     fill_after_renewal: f64,
     /// Nodes at the last renewal (its snapshot).
     nodes_at_renewal: usize,
-    renewal: Option<Renewal<K>>,
+    renewal: Option<(Renewal<K>, Due)>,
+    /// The live factors' work so far ([`SqrtInfo::take_work`]).
+    work: u64,
     /// The thread that builds renewals and frees retired factors.
     worker: Worker,
     steps: u64,
@@ -308,6 +177,7 @@ impl<const K: usize> Default for Laplacian<K> {
             fill_after_renewal: 0.0,
             nodes_at_renewal: 0,
             renewal: None,
+            work: 0,
             worker: Worker::default(),
             steps: 0,
             last_edge: None,
@@ -326,7 +196,7 @@ impl<const K: usize> Laplacian<K> {
     /// Tell a renewal's builder (if any) about a change; a builder that is gone abandons the
     /// renewal (the live factor goes on).
     fn send(&mut self, msg: Msg<K>) {
-        if let Some(r) = &self.renewal
+        if let Some((r, _)) = &self.renewal
             && !r.send(msg)
         {
             self.renewal = None;
@@ -496,17 +366,15 @@ impl<const K: usize> Laplacian<K> {
     /// snapshot takes the right-hand sides computed by the job `relinearise` gives (None: the
     /// current ones), run on the builder's thread; they become the live ones when the renewal
     /// is swapped in.
-    /// A renewal starts only when `may_start`: the owner starts none while another builder
-    /// runs — of its other factor, or of the screening's P_UU factor (on two cores they would
-    /// contend for the one the steps do not use). A P_UU renewal may still start while this
-    /// one builds: whether this one builds is known only once the steps' operations are
-    /// applied, which a caller that never reads does not pay for.
+    /// A renewal starts only when `may_start` (the owner's other factor is not being renewed:
+    /// one builder at a time; the screening's P_UU builder may run beside it).
     pub fn after_step(
         &mut self,
         may_start: bool,
         relinearise: impl FnOnce(&mut Self) -> Option<Relinearise<K>>,
     ) {
         self.steps += 1;
+        self.work += self.factor.take_work();
         if self.renewal.is_some() {
             self.complete_renewal();
             return;
@@ -533,7 +401,6 @@ impl<const K: usize> Laplacian<K> {
         // renewal's fill per row), not with the live factor's fill, which is what grows
         // without bound between renewals.
         let expected_nnz = self.fill_after_renewal.max(2.0) * n as f64;
-        let delay = MIN_DELAY.max((expected_nnz * DELAY_PER_ROW) as u64);
         let build = move || {
             if let Some(job) = relinearise {
                 job(&mut rows.y);
@@ -569,29 +436,36 @@ impl<const K: usize> Laplacian<K> {
             Some(())
         };
         let finish = |(f, rows): (SqrtInfo<K>, Rows<K>)| (f, rows.y);
-        let ready_at = self.steps + delay;
+        let due = Due {
+            step: self.steps + MIN_DELAY,
+            work: self.work + (expected_nnz * WORK_PER_NONZERO) as u64,
+        };
         let worker = &mut self.worker;
-        let Some(renewal) = Beside::start(worker, "so2lin-renew", ready_at, build, apply, finish)
-        else {
+        let Some(renewal) = Beside::start(worker, "so2lin-renew", build, apply, finish) else {
             return;
         };
         self.nodes_at_renewal = n;
-        self.renewal = Some(renewal);
+        self.renewal = Some((renewal, due));
     }
 
     /// At the renewal's step: collect the builder (which has applied every change since its
     /// snapshot) and swap its factor in; the old one is freed on the worker.
     fn complete_renewal(&mut self) {
-        let Some(r) = &self.renewal else { return };
-        let (fresh, y) = match r.collect(self.steps, &mut self.waits) {
-            Collected::NotYet => return,
-            Collected::Failed => {
-                self.renewal = None;
-                return;
-            }
+        let Some((_, due)) = &self.renewal else {
+            return;
+        };
+        if self.steps < due.step || self.work < due.work {
+            return;
+        }
+        let Some((r, _)) = self.renewal.take() else {
+            return;
+        };
+        let (mut fresh, y) = match r.collect(&mut self.waits) {
+            Collected::Failed => return,
             Collected::Ready(built) => built,
         };
-        self.renewal = None;
+        // The builder's work is not the live factor's.
+        fresh.take_work();
         if y.len() != self.rows.y.len() {
             return;
         }

@@ -1,0 +1,288 @@
+//! Renewing a factor without a stall: a fresh factor built beside the live one on another
+//! thread, kept up to date with the live system's changes, and swapped in at a point of the
+//! run fixed in advance.
+//!
+//! The live factor fills as the graph grows (new nodes go to the end of its order); a renewal
+//! builds the same system in a fill-reducing order from a snapshot. Every change the live
+//! system makes after the snapshot is queued for the builder, which applies it to its copy as
+//! it comes. At the point the owner fixed when the renewal started (counted in steps and in
+//! the live factor's own work, so the run does not depend on the threads' timing), the owner
+//! **takes over** the builder's state between two
+//! changes, applies whatever changes the builder had not reached yet itself, and swaps the
+//! result in. Taking over instead of asking the builder to finish saves the round trip of
+//! waking it (20–130 µs a renewal on the development machine, more when it is descheduled):
+//! a step waits only while the builder is still building its snapshot, or applying one change.
+//! Applying the same changes in the same order to the same state gives the same bits on
+//! either thread, so the answers do not depend on who applied them.
+
+use std::collections::VecDeque;
+use std::sync::{Arc, Condvar, Mutex};
+
+/// A job for a [`Worker`].
+type Job = Box<dyn FnOnce() + Send>;
+
+/// A long-lived thread that runs jobs in the order given: builds of renewed factors, and the
+/// freeing of retired ones (a factor's thousands of rows cost a step about a millisecond to
+/// free). One thread for the estimator's life, so no step pays for starting a thread after the
+/// first renewal.
+#[derive(Default)]
+pub(crate) struct Worker {
+    tx: Option<std::sync::mpsc::Sender<Job>>,
+}
+
+impl Worker {
+    /// Run `job` on the worker thread (started on first use as `name`). False when no thread
+    /// can be started or it is gone: the caller goes on without.
+    pub fn run(&mut self, name: &str, job: Job) -> bool {
+        if self.tx.is_none() {
+            let (tx, rx) = std::sync::mpsc::channel::<Job>();
+            let spawned = std::thread::Builder::new()
+                .name(name.into())
+                .spawn(move || {
+                    lower_priority();
+                    for job in rx {
+                        job();
+                    }
+                })
+                .is_ok();
+            if !spawned {
+                return false;
+            }
+            self.tx = Some(tx);
+        }
+        match &self.tx {
+            Some(tx) if tx.send(job).is_ok() => true,
+            _ => {
+                self.tx = None;
+                false
+            }
+        }
+    }
+
+    /// Free `value` on the worker thread (here if there is none).
+    pub fn retire<T: Send + 'static>(&mut self, name: &str, value: T) {
+        self.run(name, Box::new(move || drop(value)));
+    }
+}
+
+/// Lower the calling thread's scheduling priority (nice 10 on Linux, where priorities are per
+/// thread): a renewal's builder must not take the core the robot's steps run on when the cores
+/// are few (a step preempted by a builder was the worst step on two cores). Elsewhere nothing.
+fn lower_priority() {
+    #[cfg(target_os = "linux")]
+    // SAFETY: setpriority with who = 0 changes only the calling thread's nice value; it reads
+    // no memory of ours. A refusal (no permission) leaves the priority as it was.
+    unsafe {
+        libc::setpriority(libc::PRIO_PROCESS, 0, 10);
+    }
+}
+
+/// What the owner and the builder share (under one lock, held only to move values).
+struct Shared<S, M> {
+    /// Changes sent and not yet taken by the builder, oldest first.
+    queue: VecDeque<M>,
+    /// The builder's state between two changes (None while it builds or applies one).
+    state: Option<S>,
+    /// The build, or a change, failed.
+    failed: bool,
+    /// The owner took the state over, or dropped the renewal: the builder stops.
+    done: bool,
+    /// The builder is waiting for a change (a change sent then must wake it; otherwise the
+    /// owner's step saves the system call).
+    idle: bool,
+}
+
+/// The lock and the condition both sides wait on.
+type Link<S, M> = Arc<(Mutex<Shared<S, M>>, Condvar)>;
+
+/// A factor built beside the live one on a [`Worker`] (see the module docs): state `S`
+/// built from a snapshot, changes `M` applied to it, result `T` swapped in. The one renewal
+/// mechanism of the estimate's factors and of the factor of P_UU; they differ only in what
+/// they build and which changes they send.
+pub(crate) struct Beside<S, T, M> {
+    link: Link<S, M>,
+    apply: fn(&mut S, M) -> Option<()>,
+    finish: fn(S) -> T,
+}
+
+/// What [`Beside::collect`] found.
+pub(crate) enum Collected<T> {
+    /// The built factor, up to date with every change sent.
+    Ready(T),
+    /// The build failed or the builder is gone: the live factor goes on.
+    Failed,
+}
+
+/// Lock, treating a poisoned lock (a builder that panicked) as gone.
+fn lock<S, M>(m: &Mutex<Shared<S, M>>) -> Option<std::sync::MutexGuard<'_, Shared<S, M>>> {
+    m.lock().ok()
+}
+
+impl<S: Send + 'static, T, M: Send + 'static> Beside<S, T, M> {
+    /// Start a builder on `worker`: `build` makes the
+    /// fresh state from the snapshot it owns, `apply` applies each change sent later (None:
+    /// the renewal fails; run by the builder or, for the changes it has not reached at the
+    /// collection, by the owner), `finish` turns the state into the result. None when the
+    /// worker cannot take it: the live factor goes on, and the owner may try again later.
+    pub fn start(
+        worker: &mut Worker,
+        name: &str,
+        build: impl FnOnce() -> Option<S> + Send + 'static,
+        apply: fn(&mut S, M) -> Option<()>,
+        finish: fn(S) -> T,
+    ) -> Option<Self> {
+        let link: Link<S, M> = Arc::new((
+            Mutex::new(Shared {
+                queue: VecDeque::new(),
+                state: None,
+                failed: false,
+                done: false,
+                idle: false,
+            }),
+            Condvar::new(),
+        ));
+        let theirs = Arc::clone(&link);
+        let job: Job = Box::new(move || {
+            let (m, cv) = &*theirs;
+            let built = build();
+            let Some(mut g) = lock(m) else { return };
+            match built {
+                Some(s) => g.state = Some(s),
+                None => g.failed = true,
+            }
+            cv.notify_all();
+            while !g.failed {
+                g.idle = true;
+                let Ok(waited) = cv.wait_while(g, |s| s.queue.is_empty() && !s.done) else {
+                    return;
+                };
+                g = waited;
+                g.idle = false;
+                if g.done {
+                    return;
+                }
+                let (Some(change), Some(mut s)) = (g.queue.pop_front(), g.state.take()) else {
+                    return;
+                };
+                drop(g);
+                let ok = apply(&mut s, change).is_some();
+                let Some(back) = lock(m) else { return };
+                g = back;
+                if ok {
+                    g.state = Some(s);
+                } else {
+                    g.failed = true;
+                }
+                cv.notify_all();
+            }
+        });
+        worker.run(name, job).then_some(Self {
+            link,
+            apply,
+            finish,
+        })
+    }
+
+    /// Queue a change for the builder; false when it is gone (the owner drops the renewal).
+    pub fn send(&self, change: M) -> bool {
+        let (m, cv) = &*self.link;
+        let Some(mut g) = lock(m) else { return false };
+        if g.failed {
+            return false;
+        }
+        g.queue.push_back(change);
+        let wake = g.idle;
+        drop(g);
+        if wake {
+            cv.notify_all();
+        }
+        true
+    }
+
+    /// The built factor with every change sent applied (the ones the builder has not reached
+    /// are applied here; a step that finds the builder still building, or inside a change,
+    /// waits and counts in `waits`), or [`Collected::Failed`]. The owner collects at a point
+    /// of its run fixed in advance (not when the builder happens to be done), so that the run
+    /// does not depend on the threads' timing.
+    pub fn collect(self, waits: &mut usize) -> Collected<T> {
+        let (m, cv) = &*self.link;
+        let Some(mut g) = lock(m) else {
+            return Collected::Failed;
+        };
+        if g.state.is_none() && !g.failed {
+            *waits += 1;
+            let t = std::time::Instant::now();
+            let Ok(waited) = cv.wait_while(g, |s| s.state.is_none() && !s.failed) else {
+                return Collected::Failed;
+            };
+            g = waited;
+            eprintln!(
+                "waited {} us {}",
+                t.elapsed().as_micros(),
+                std::any::type_name::<T>().len()
+            );
+        }
+        g.done = true;
+        let state = g.state.take();
+        let left = std::mem::take(&mut g.queue);
+        drop(g);
+        cv.notify_all();
+        let Some(mut state) = state else {
+            return Collected::Failed;
+        };
+        for change in left {
+            if (self.apply)(&mut state, change).is_none() {
+                return Collected::Failed;
+            }
+        }
+        Collected::Ready((self.finish)(state))
+    }
+}
+
+impl<S, T, M> Drop for Beside<S, T, M> {
+    /// A renewal dropped before its collection stops its builder.
+    fn drop(&mut self) {
+        let (m, cv) = &*self.link;
+        if let Ok(mut g) = m.lock() {
+            g.done = true;
+        }
+        cv.notify_all();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The state built from the snapshot, with every change applied in order whoever applied
+    /// it; a failed change fails the renewal; a dropped renewal frees its worker.
+    #[test]
+    fn the_owner_takes_over_between_changes() {
+        let mut worker = Worker::default();
+        let push = |s: &mut Vec<u32>, c: u32| (c != 999).then(|| s.push(c));
+        let r = Beside::start(&mut worker, "t", || Some(vec![0u32]), push, |s| s)
+            .expect("a worker thread");
+        for c in 1..=200 {
+            assert!(r.send(c));
+        }
+        let mut waits = 0;
+        match r.collect(&mut waits) {
+            Collected::Ready(s) => assert_eq!(s, (0..=200).collect::<Vec<_>>()),
+            _ => panic!("not collected"),
+        }
+        // A change that fails fails the renewal.
+        let r =
+            Beside::start(&mut worker, "t", || Some(vec![]), push, |s| s).expect("a worker thread");
+        assert!(r.send(999));
+        assert!(matches!(r.collect(&mut waits), Collected::Failed));
+        // A failed build.
+        let r = Beside::start(&mut worker, "t", || None, push, |s| s).expect("worker");
+        assert!(matches!(r.collect(&mut waits), Collected::Failed));
+        // Dropped: the worker goes on to the next job.
+        let r = Beside::start(&mut worker, "t", || Some(vec![]), push, |s| s).expect("w");
+        drop(r);
+        let r = Beside::start(&mut worker, "t", || Some(vec![7]), push, |s| s).expect("w");
+        assert!(r.send(8));
+        assert!(matches!(r.collect(&mut waits), Collected::Ready(s) if s == [7, 8]));
+    }
+}
