@@ -211,16 +211,10 @@ impl<S: Send + 'static, T, M: Send + 'static> Beside<S, T, M> {
         };
         if g.state.is_none() && !g.failed {
             *waits += 1;
-            let t = std::time::Instant::now();
             let Ok(waited) = cv.wait_while(g, |s| s.state.is_none() && !s.failed) else {
                 return Collected::Failed;
             };
             g = waited;
-            eprintln!(
-                "waited {} us {}",
-                t.elapsed().as_micros(),
-                std::any::type_name::<T>().len()
-            );
         }
         g.done = true;
         let state = g.state.take();
