@@ -101,9 +101,9 @@
 //!
 //! **No stalls**: the factor of P_UU and the estimate's factors are renewed in a fill-reducing
 //! order on a worker thread, which is sent every later change and applies it itself; the new
-//! factor is collected a fixed number of steps after the start and swapped in
-//! (`online/laplacian.rs`), so no step replays or rebuilds anything, and results do not depend
-//! on the threads' timing.
+//! factor is collected once the live factor has done as much work (entries of the factor
+//! visited, counted) as the builder is expected to need, and swapped in (`online/renewal.rs`),
+//! so no step replays or rebuilds anything, and results do not depend on the threads' timing.
 
 use serde::Serialize;
 use smallvec::SmallVec;
@@ -1293,10 +1293,12 @@ impl OnlineEstimator {
     /// order has made it much denser than a reordered one would be (amortised: its fill per
     /// row must grow by half first). Conditional moments do not depend on the order. The new
     /// factor is built **beside** the live one on another thread, from a snapshot of the
-    /// determined cycles, collected a fixed number of steps later (a step count, so the run
-    /// is deterministic whatever the threads' timing; a step waits only if the builder is
-    /// still busy then). The builder is sent every later cycle and determination and applies
-    /// them itself, so the swap costs nothing: no step rebuilds or replays the factor.
+    /// determined cycles, collected once the live factor has done [`REORDER_WORK_MARGIN`]
+    /// times the work the builder is expected to do, and at least a number of steps later
+    /// (counts, so the run is deterministic whatever the threads' timing; a step waits only if
+    /// the builder is still busy then). The builder is sent every later cycle and
+    /// determination and applies them itself, so the swap costs nothing: no step rebuilds or
+    /// replays the factor.
     fn maybe_reorder(&mut self) {
         if self.renewal.is_some() {
             return;
