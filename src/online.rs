@@ -53,7 +53,9 @@
 //! graph has grown since e was accepted: the path may be shorter, the test sharper) fails at
 //! the family-wise level of its cycle, or when one of the last 4 loop closures that failed
 //! through e passes (at the per-cycle level α) on the path avoiding e and that cycle is
-//! doubtful (beyond the per-cycle threshold), or when two of them pass. The second clause is
+//! doubtful (beyond the per-cycle threshold), or when two of them pass — each on a path at
+//! most 4 times as long (`Σ σ²`) as e's own, the loop e closes (a longer path passes only
+//! because its covariance is wider, and the search for it crosses the map). The second clause is
 //! for a false edge whose own cycle has no power (the path avoiding it is long, its covariance
 //! wide): on M3500 + 1000 false edges, seeds 4 and 5, six such edges stayed in and 250 and 125
 //! genuine loop closures were quarantined through them (precision 0.80, 0.89). An eviction
@@ -456,6 +458,18 @@ const REPLAY_BUDGET: usize = 8;
 /// ([`OnlineEstimator::examine_suspects`]); the bar doubles after each examination.
 const SUSPECT_FAILURES: u32 = 3;
 
+/// A loop closure that failed through an accepted loop closure e blames e only when it passes
+/// without e on a path at most this many times as long (`Σ σ²`) as e's own path avoiding e —
+/// the loop e itself closes. Measured with the bound off: on M3500 + 1000 false edges (random
+/// seeds 1, 2, 4, clustered seed 7) every pass that incriminated a false e came at 0.56–1.52
+/// times e's own path, and on INTEL + 100 clustered (seed 1) at 1.6–3.6 (short loops of 6–12
+/// edges, and some at 29–32); passes through a genuine e came at 3.4–118 times (a longer path
+/// passes only because its covariance is wider; on M3500 clustered seed 7 those from 5.4 up
+/// evicted 47 genuine loop closures); and the queries that failed, through genuine edges, ran
+/// at 4–38 times: searches across the map, 0.4–1.8 s of those streams, which the bound stops.
+/// At 2, INTEL clustered seed 1 kept 13 false edges; at 3 and 4 none.
+const BLAME_PATH_RATIO: f64 = 4.0;
+
 /// Cycles whose conditional sd of γ is below this feed the angle noise scale: their nearest
 /// integer is their value (a genuine residual of half a turn would be 5 sd away).
 const ANGLE_SCALE_MAX_SD: f64 = 0.1;
@@ -791,15 +805,23 @@ impl OnlineEstimator {
     }
 
     /// Whether the loop closure `failed` passes the translation test, with the current
-    /// scales at `level`, on the cycle it closes when edge `e` is avoided.
-    fn passes_without(&mut self, failed: Edge, e: usize, scales: (f64, f64), level: f64) -> bool {
+    /// scales at `level`, on the cycle it closes when edge `e` is avoided, if that cycle's path
+    /// is at most `radius` long (`Σ σ²`; false when longer).
+    fn passes_without(
+        &mut self,
+        failed: Edge,
+        e: usize,
+        radius: f64,
+        scales: (f64, f64),
+        level: f64,
+    ) -> bool {
         let (Some(a), Some(b)) = (
             self.graph.node_index(failed.from()),
             self.graph.node_index(failed.to()),
         ) else {
             return false;
         };
-        let Some(cycle) = self.basis.probe_avoiding(a, b, e) else {
+        let Some(cycle) = self.basis.probe_avoiding_within(a, b, e, radius) else {
             return false;
         };
         let n = self.graph.edge_count();
@@ -815,8 +837,9 @@ impl OnlineEstimator {
     /// ([`IncrementalBasis::probe_avoiding`]) fails at [`Self::eviction_level`] (the graph has
     /// grown since e was accepted: the path may be shorter and the test sharper), or when loop
     /// closures that failed through it pass their translation test at the per-cycle level α
-    /// on the path that avoids e: one of the last [`RECENT_FAILURES`] if e's own cycle is
-    /// doubtful, two of them otherwise. The reported statistic is that of e's own cycle.
+    /// on the path that avoids e, if that path is at most [`BLAME_PATH_RATIO`] times as long
+    /// as e's own: one of the last [`RECENT_FAILURES`] if e's own cycle is doubtful, two of
+    /// them otherwise. The reported statistic is that of e's own cycle.
     fn examine_suspects(&mut self, step: &mut Step) {
         if !self.evicts() || self.suspects_due.is_empty() {
             return;
@@ -839,12 +862,18 @@ impl OnlineEstimator {
             let limit = closure::threshold(self.eviction_level(t));
             let edges = self.graph.edges();
             let (a, b) = self.graph.endpoints()[e];
-            let own = self.basis.probe_avoiding(a, b, e).and_then(|c| {
+            let own_cycle = self.basis.probe_avoiding(a, b, e);
+            let own = own_cycle.as_ref().and_then(|c| {
                 let n = edges.len();
                 let of = |i: usize| if i == n { edges[e] } else { edges[i] };
                 closure::translation_closure(&c.terms, &of, scales.1)
             });
             let tested = own.map_or(0.0, |x| x.chi2 / scales.0);
+            // A failed loop closure blames e when it passes on a cycle not much longer than
+            // e's own (BLAME_PATH_RATIO): it then closes the loop e closes.
+            let radius = own_cycle.map_or(f64::INFINITY, |c| {
+                BLAME_PATH_RATIO * self.basis.path_weight(&c)
+            });
             // Blame by one failed loop closure is weak evidence (it may pass without e only
             // because the other path is longer): e's own cycle must also be doubtful, beyond
             // the per-cycle threshold; or two of them must pass without e.
@@ -863,7 +892,7 @@ impl OnlineEstimator {
                         return false;
                     }
                     left -= 1;
-                    n += usize::from(me.passes_without(f, e, scales, alpha));
+                    n += usize::from(me.passes_without(f, e, radius, scales, alpha));
                     if n >= need {
                         return true;
                     }

@@ -367,6 +367,12 @@ impl IncrementalBasis {
     /// edge), without adding it; `None` if it would be a tree edge. The online estimator tests
     /// a loop closure with it before deciding to add it ([`Self::commit`]) or to quarantine it.
     pub fn probe(&mut self, a: usize, b: usize) -> Option<Cycle> {
+        self.probe_within(a, b, f64::INFINITY)
+    }
+
+    /// [`Self::probe`] when the path is at most `radius` long (`Σ σ²`); the search stops
+    /// there.
+    fn probe_within(&mut self, a: usize, b: usize, radius: f64) -> Option<Cycle> {
         if a.max(b) >= self.adj.len() || !self.connected(a, b) {
             return None;
         }
@@ -375,8 +381,8 @@ impl IncrementalBasis {
             edge: self.ends.len() as u32,
             sign: 1,
         });
-        self.shortest_path(b, a, &mut terms);
-        Some(Cycle { terms })
+        self.shortest_path(b, a, radius, &mut terms)
+            .then_some(Cycle { terms })
     }
 
     /// The cycle a new edge `a → b` would close ([`Self::probe`]) with the least-σ² path that
@@ -384,13 +390,33 @@ impl IncrementalBasis {
     /// quarantine asks it when cycles through an accepted loop closure keep failing: do they
     /// close without it?
     pub fn probe_avoiding(&mut self, a: usize, b: usize, avoid: usize) -> Option<Cycle> {
+        self.probe_avoiding_within(a, b, avoid, f64::INFINITY)
+    }
+
+    /// [`Self::probe_avoiding`] when the path is at most `radius` long (`Σ σ²`): `None` when
+    /// it is longer, found by a search that stops at that distance (a point-to-point query
+    /// across the whole graph costs a search of the graph).
+    pub fn probe_avoiding_within(
+        &mut self,
+        a: usize,
+        b: usize,
+        avoid: usize,
+        radius: f64,
+    ) -> Option<Cycle> {
         if avoid >= self.sigma2.len() {
-            return self.probe(a, b);
+            return self.probe_within(a, b, radius);
         }
         let kept = std::mem::replace(&mut self.sigma2[avoid], f64::INFINITY);
-        let cycle = self.probe(a, b);
+        let cycle = self.probe_within(a, b, radius);
         self.sigma2[avoid] = kept;
         cycle.filter(|c| c.terms[1..].iter().all(|t| t.edge as usize != avoid))
+    }
+
+    /// `Σ σ²` of a cycle's path: every term but the probed chord (term 0).
+    pub fn path_weight(&self, cycle: &Cycle) -> f64 {
+        (cycle.terms.iter().skip(1))
+            .map(|t| self.sigma2[t.edge as usize])
+            .sum()
     }
 
     /// Add edge `a → b` whose cycle (`closes`) or tree status was found by [`Self::probe`].
@@ -405,12 +431,21 @@ impl IncrementalBasis {
         self.adj[b].push((a as u32, e));
     }
 
-    /// Append the least-σ² path `src → … → dst` (signed edges in traversal order) to `out`.
-    /// `src` and `dst` must be connected.
-    fn shortest_path(&mut self, src: usize, dst: usize, out: &mut SmallVec<[SignedEdge; 8]>) {
-        self.search
-            .run(&self.adj, &self.sigma2, src, Some(dst), f64::INFINITY);
+    /// Append the least-σ² path `src → … → dst` (signed edges in traversal order) to `out`
+    /// when it is at most `radius` long; false (nothing appended) otherwise, or when `src` and
+    /// `dst` are not connected.
+    fn shortest_path(
+        &mut self,
+        src: usize,
+        dst: usize,
+        radius: f64,
+        out: &mut SmallVec<[SignedEdge; 8]>,
+    ) -> bool {
+        if !(self.search).run(&self.adj, &self.sigma2, src, Some(dst), radius) {
+            return false;
+        }
         self.search.path(&self.ends, src, dst, out);
+        true
     }
 }
 
@@ -466,5 +501,26 @@ mod tests {
         let c = b.add_edge(0, 1, 0.5).unwrap();
         // Chord 0→1 then back 1→0: edge 0 (0→1) against, weight 1 < edge 1's 2.
         assert_eq!(c.terms[1], SignedEdge { edge: 0, sign: -1 });
+    }
+
+    /// A ring 0–1–…–9–0 of unit weights plus a shortcut 0–5 (weight 0.5): avoiding the
+    /// shortcut, 0 and 5 are 5 apart; a radius below that finds nothing, one at or above it
+    /// the cycle `probe_avoiding` finds, with its path's weight.
+    #[test]
+    fn a_probe_within_a_radius_stops_there() {
+        let mut b = IncrementalBasis::new();
+        for v in 0..10 {
+            b.add_edge(v, (v + 1) % 10, 1.0);
+        }
+        b.add_edge(0, 5, 0.5);
+        let shortcut = 10;
+        let far = b.probe_avoiding(0, 5, shortcut).unwrap();
+        assert_eq!(b.path_weight(&far), 5.0);
+        assert!(far.terms[1..].iter().all(|t| t.edge != shortcut as u32));
+        assert!(b.probe_avoiding_within(0, 5, shortcut, 4.9).is_none());
+        assert_eq!(b.probe_avoiding_within(0, 5, shortcut, 5.0), Some(far));
+        // Through the shortcut: 0.5 away.
+        let near = b.probe_avoiding_within(0, 5, 0, 0.5).unwrap();
+        assert_eq!(b.path_weight(&near), 0.5);
     }
 }
