@@ -113,6 +113,23 @@ pub(crate) enum Collected<T> {
     Failed,
 }
 
+/// Owned by a builder's job: however the job ends — done, failed, panicked, or dropped
+/// unrun because the worker thread is gone — an owner waiting for the state is woken, and
+/// finds the renewal failed unless it has taken the state already.
+struct Abandon<S, M>(Link<S, M>);
+
+impl<S, M> Drop for Abandon<S, M> {
+    fn drop(&mut self) {
+        let (m, cv) = &*self.0;
+        if let Ok(mut g) = m.lock()
+            && g.state.is_none()
+        {
+            g.failed = true;
+        }
+        cv.notify_all();
+    }
+}
+
 /// Lock, treating a poisoned lock (a builder that panicked) as gone.
 fn lock<S, M>(m: &Mutex<Shared<S, M>>) -> Option<std::sync::MutexGuard<'_, Shared<S, M>>> {
     m.lock().ok()
@@ -141,9 +158,9 @@ impl<S: Send + 'static, T, M: Send + 'static> Beside<S, T, M> {
             }),
             Condvar::new(),
         ));
-        let theirs = Arc::clone(&link);
+        let theirs = Abandon(Arc::clone(&link));
         let job: Job = Box::new(move || {
-            let (m, cv) = &*theirs;
+            let (m, cv) = &*theirs.0;
             let built = build();
             let Some(mut g) = lock(m) else { return };
             match built {
@@ -278,5 +295,20 @@ mod tests {
         let r = Beside::start(&mut worker, "t", || Some(vec![7]), push, |s| s).expect("w");
         assert!(r.send(8));
         assert!(matches!(r.collect(&mut waits), Collected::Ready(s) if s == [7, 8]));
+        // A builder that panics (here on its first change, on the worker thread, which ends
+        // with it) fails the renewal instead of leaving the owner waiting. (Should the owner
+        // take the state first and apply the change itself, the change fails there.)
+        let boom = |_: &mut Vec<u32>, _: u32| -> Option<()> {
+            if std::thread::current().name() == Some("t") {
+                panic!("a builder's bug");
+            }
+            None
+        };
+        let r = Beside::start(&mut worker, "t", || Some(vec![]), boom, |s| s).expect("w");
+        assert!(r.send(1));
+        assert!(matches!(r.collect(&mut waits), Collected::Failed));
+        // A job queued on a worker whose thread is gone never runs: also a failed renewal.
+        let r = Beside::start(&mut worker, "t", || Some(vec![]), push, |s| s);
+        assert!(r.is_none_or(|r| matches!(r.collect(&mut waits), Collected::Failed)));
     }
 }
