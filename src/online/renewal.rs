@@ -136,11 +136,11 @@ fn lock<S, M>(m: &Mutex<Shared<S, M>>) -> Option<std::sync::MutexGuard<'_, Share
 }
 
 impl<S: Send + 'static, T, M: Send + 'static> Beside<S, T, M> {
-    /// Start a builder on `worker`: `build` makes the
-    /// fresh state from the snapshot it owns, `apply` applies each change sent later (None:
-    /// the renewal fails; run by the builder or, for the changes it has not reached at the
-    /// collection, by the owner), `finish` turns the state into the result. None when the
-    /// worker cannot take it: the live factor goes on, and the owner may try again later.
+    /// Start a builder on `worker`: `build` makes the fresh state from the snapshot it owns,
+    /// `apply` applies each change sent later (None: the renewal fails; run by the builder
+    /// or, for the changes it has not reached at the collection, by the owner), `finish`
+    /// turns the state into the result. None when the worker cannot take it: the live factor
+    /// goes on, and the owner may try again later.
     pub fn start(
         worker: &mut Worker,
         name: &str,
