@@ -281,6 +281,11 @@ impl Estimate {
                 Some(Box::new(relinearise::<3>(both.all(0), graph, edges, 1)))
             }),
             Factors::Split { heads, positions } => {
+                // The thread rotated both factors this step: each one's renewal is due by the
+                // work of both.
+                let (h, p) = (heads.step_work(), positions.step_work());
+                heads.credit(p);
+                positions.credit(h);
                 // One builder at a time (heads first).
                 let free = !positions.renewing();
                 heads.after_step(free, |_| None);
