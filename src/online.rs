@@ -527,10 +527,8 @@ const FAR: f64 = 4.0;
 
 /// A renewal of the P_UU factor built beside the live one ([`OnlineEstimator::maybe_reorder`]).
 struct CondRenewal {
-    /// Collected at the first step that is at least this one ...
-    ready_at: u64,
-    /// ... and at which the live factor's work ([`Conditioner::take_work`]) has reached this.
-    work_due: u64,
+    /// When it is collected (the live work counted by [`Conditioner::take_work`]).
+    due: renewal::Due,
     build: renewal::Beside<(Conditioner, GammaModel), Conditioner, CondMsg>,
     /// Cycles of the model sent to the builder.
     cycles_sent: usize,
@@ -1371,7 +1369,6 @@ impl OnlineEstimator {
             Some(())
         };
         let finish = |(fresh, _): (Conditioner, GammaModel)| fresh;
-        let ready_at = self.counters.steps as u64 + delay;
         // The builder's work in the live factor's units: its solves, expected from the last
         // one's per determined cycle (at least one solve of the current fill per row), and the
         // fill-reducing order it computes first, about as long per nonzero of P_γ as
@@ -1380,13 +1377,14 @@ impl OnlineEstimator {
         let expected = rows as f64 * self.rebuild_work_per_row.max(per_row)
             + ORDER_WORK_PER_NONZERO * self.model.nnz() as f64;
         self.cond_work += self.screener.cond.take_work();
-        let work_due = self.cond_work + (REORDER_WORK_MARGIN * expected) as u64;
         let worker = &mut self.worker;
         if let Some(build) = renewal::Beside::start(worker, "so2lin-reorder", build, apply, finish)
         {
             self.renewal = Some(CondRenewal {
-                ready_at,
-                work_due,
+                due: renewal::Due {
+                    step: self.counters.steps as u64 + delay,
+                    work: self.cond_work + (REORDER_WORK_MARGIN * expected) as u64,
+                },
                 build,
                 cycles_sent: self.model.len(),
                 determined_sent: rows,
@@ -1415,11 +1413,11 @@ impl OnlineEstimator {
             return;
         }
         self.cond_work += self.screener.cond.take_work();
-        if (self.counters.steps as u64) < r.ready_at || self.cond_work < r.work_due {
+        if !r.due.reached(self.counters.steps as u64, self.cond_work) {
             return;
         }
         let Some(r) = self.renewal.take() else { return };
-        let renewal::Collected::Ready(mut fresh) = r.build.collect(&mut self.cond_waits) else {
+        let Some(mut fresh) = r.build.collect(&mut self.cond_waits) else {
             return;
         };
         // The builder's own work (its build and the changes it applied).

@@ -412,10 +412,11 @@ impl IncrementalBasis {
         cycle.filter(|c| c.terms[1..].iter().all(|t| t.edge as usize != avoid))
     }
 
-    /// `Σ σ²` of a cycle's path: every term but the probed chord (term 0).
+    /// `Σ σ²` of a cycle's path: every term but the probed chord (term 0); edges this basis
+    /// does not have count 0.
     pub fn path_weight(&self, cycle: &Cycle) -> f64 {
         (cycle.terms.iter().skip(1))
-            .map(|t| self.sigma2[t.edge as usize])
+            .filter_map(|t| self.sigma2.get(t.edge as usize))
             .sum()
     }
 

@@ -47,7 +47,7 @@
 //! busy then — and swapped in. Every answer in between comes from the live factor: exact at
 //! every step.
 
-use super::renewal::{Beside, Collected, Worker};
+use super::renewal::{Beside, Due, Worker};
 use crate::estimate::incremental::{SqrtInfo, fill_reducing_order};
 use crate::graph::UnionFind;
 
@@ -70,13 +70,6 @@ pub(crate) const MIN_DELAY: u64 = 32;
 /// of milliseconds while its steps slowed down, and the builders of M3500 were waited for at
 /// 50 of its 5 453 steps, up to 2.4 ms).
 const WORK_PER_NONZERO: f64 = 64.0;
-
-/// When a renewal is collected: at the first step that is at least `step` and at which the
-/// live factors' work has reached `work`.
-struct Due {
-    step: u64,
-    work: u64,
-}
 
 /// A change to the system, sent to a renewal's builder so that it keeps its copy up to date
 /// itself (the live factor's steps replay nothing).
@@ -389,7 +382,7 @@ impl<const K: usize> Laplacian<K> {
         relinearise: impl FnOnce(&mut Self) -> Option<Relinearise<K>>,
     ) {
         self.steps += 1;
-        self.work += self.factor.take_work();
+        self.step_work();
         if self.renewal.is_some() {
             self.complete_renewal();
             return;
@@ -469,15 +462,14 @@ impl<const K: usize> Laplacian<K> {
         let Some((_, due)) = &self.renewal else {
             return;
         };
-        if self.steps < due.step || self.work < due.work {
+        if !due.reached(self.steps, self.work) {
             return;
         }
         let Some((r, _)) = self.renewal.take() else {
             return;
         };
-        let (mut fresh, y) = match r.collect(&mut self.waits) {
-            Collected::Failed => return,
-            Collected::Ready(built) => built,
+        let Some((mut fresh, y)) = r.collect(&mut self.waits) else {
+            return;
         };
         // The builder's work is not the live factor's.
         fresh.take_work();

@@ -105,12 +105,22 @@ pub(crate) struct Beside<S, T, M> {
     finish: fn(S) -> T,
 }
 
-/// What [`Beside::collect`] found.
-pub(crate) enum Collected<T> {
-    /// The built factor, up to date with every change sent.
-    Ready(T),
-    /// The build failed or the builder is gone: the live factor goes on.
-    Failed,
+/// When a renewal is collected: at the first step that is at least `step` and at which the
+/// owner's live work (entries of its factor visited, counted) has reached `work` — counts, not
+/// clocks, so the run does not depend on the threads' timing.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Due {
+    /// The step, at least.
+    pub step: u64,
+    /// The live work, at least.
+    pub work: u64,
+}
+
+impl Due {
+    /// Whether the renewal is due at `step` with the live work at `work`.
+    pub fn reached(&self, step: u64, work: u64) -> bool {
+        step >= self.step && work >= self.work
+    }
 }
 
 /// Owned by a builder's job: however the job ends — done, failed, panicked, or dropped
@@ -218,35 +228,27 @@ impl<S: Send + 'static, T, M: Send + 'static> Beside<S, T, M> {
 
     /// The built factor with every change sent applied (the ones the builder has not reached
     /// are applied here; a step that finds the builder still building, or inside a change,
-    /// waits and counts in `waits`), or [`Collected::Failed`]. The owner collects at a point
-    /// of its run fixed in advance (not when the builder happens to be done), so that the run
-    /// does not depend on the threads' timing.
-    pub fn collect(self, waits: &mut usize) -> Collected<T> {
+    /// waits and counts in `waits`), or None when the build failed or the builder is gone
+    /// (the live factor goes on). The owner collects when a [`Due`] fixed in advance is
+    /// reached (not when the builder happens to be done), so that the run does not depend on
+    /// the threads' timing.
+    pub fn collect(self, waits: &mut usize) -> Option<T> {
         let (m, cv) = &*self.link;
-        let Some(mut g) = lock(m) else {
-            return Collected::Failed;
-        };
+        let mut g = lock(m)?;
         if g.state.is_none() && !g.failed {
             *waits += 1;
-            let Ok(waited) = cv.wait_while(g, |s| s.state.is_none() && !s.failed) else {
-                return Collected::Failed;
-            };
-            g = waited;
+            g = cv.wait_while(g, |s| s.state.is_none() && !s.failed).ok()?;
         }
         g.done = true;
         let state = g.state.take();
         let left = std::mem::take(&mut g.queue);
         drop(g);
         cv.notify_all();
-        let Some(mut state) = state else {
-            return Collected::Failed;
-        };
+        let mut state = state?;
         for change in left {
-            if (self.apply)(&mut state, change).is_none() {
-                return Collected::Failed;
-            }
+            (self.apply)(&mut state, change)?;
         }
-        Collected::Ready((self.finish)(state))
+        Some((self.finish)(state))
     }
 }
 
@@ -277,24 +279,21 @@ mod tests {
             assert!(r.send(c));
         }
         let mut waits = 0;
-        match r.collect(&mut waits) {
-            Collected::Ready(s) => assert_eq!(s, (0..=200).collect::<Vec<_>>()),
-            _ => panic!("not collected"),
-        }
+        assert_eq!(r.collect(&mut waits), Some((0..=200).collect::<Vec<_>>()));
         // A change that fails fails the renewal.
         let r =
             Beside::start(&mut worker, "t", || Some(vec![]), push, |s| s).expect("a worker thread");
         assert!(r.send(999));
-        assert!(matches!(r.collect(&mut waits), Collected::Failed));
+        assert!(r.collect(&mut waits).is_none());
         // A failed build.
         let r = Beside::start(&mut worker, "t", || None, push, |s| s).expect("worker");
-        assert!(matches!(r.collect(&mut waits), Collected::Failed));
+        assert!(r.collect(&mut waits).is_none());
         // Dropped: the worker goes on to the next job.
         let r = Beside::start(&mut worker, "t", || Some(vec![]), push, |s| s).expect("w");
         drop(r);
         let r = Beside::start(&mut worker, "t", || Some(vec![7]), push, |s| s).expect("w");
         assert!(r.send(8));
-        assert!(matches!(r.collect(&mut waits), Collected::Ready(s) if s == [7, 8]));
+        assert!(r.collect(&mut waits) == Some(vec![7, 8]));
         // A builder that panics (here on its first change, on the worker thread, which ends
         // with it) fails the renewal instead of leaving the owner waiting. (Should the owner
         // take the state first and apply the change itself, the change fails there.)
@@ -306,9 +305,9 @@ mod tests {
         };
         let r = Beside::start(&mut worker, "t", || Some(vec![]), boom, |s| s).expect("w");
         assert!(r.send(1));
-        assert!(matches!(r.collect(&mut waits), Collected::Failed));
+        assert!(r.collect(&mut waits).is_none());
         // A job queued on a worker whose thread is gone never runs: also a failed renewal.
         let r = Beside::start(&mut worker, "t", || Some(vec![]), push, |s| s);
-        assert!(r.is_none_or(|r| matches!(r.collect(&mut waits), Collected::Failed)));
+        assert!(r.is_none_or(|r| r.collect(&mut waits).is_none()));
     }
 }

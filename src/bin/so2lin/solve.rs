@@ -214,8 +214,9 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
             }
             (Some(rc), n) => {
                 let by = |tests: &[&str]| {
-                    let k = best.rejected.iter().filter(|r| tests.contains(&r.test));
-                    k.count()
+                    (best.rejected.iter())
+                        .filter(|r| tests.contains(&r.test))
+                        .count()
                 };
                 println!(
                     "robust kernel (DCS on loop closures): {n} rejected ({} by the online quarantine's cycle tests, {} by the SE(2) χ²_e test, {} by the leave-out test; family-wise α = {}); the refined cost is over the other edges, and the screening's success bound and p-values were computed with these edges included",
