@@ -61,7 +61,7 @@ pub(crate) fn approximate(
         check(deadline)?;
         let mut order: Vec<usize> = (0..b.ends.len()).collect();
         order.sort_by(|&p, &q| b.w[p].total_cmp(&b.w[q]).then(p.cmp(&q)));
-        let mut adj: Adjacency = vec![Vec::new(); b.nodes];
+        let mut adj: Adjacency = vec![SmallVec::new(); b.nodes];
         let mut in_s = vec![false; b.ends.len()];
         for e in order {
             let (x, y) = b.ends[e];

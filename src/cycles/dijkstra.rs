@@ -24,8 +24,12 @@ use smallvec::SmallVec;
 
 use super::SignedEdge;
 
-/// Adjacency lists: for each node, `(neighbour, edge id)`.
-pub(crate) type Adjacency = Vec<Vec<(u32, u32)>>;
+/// Adjacency lists: for each node, `(neighbour, edge id)`; up to four kept inline (most
+/// nodes of a pose graph: a search reads them without following a pointer).
+pub(crate) type Adjacency = Vec<AdjacencyList>;
+
+/// One node's adjacency list ([`Adjacency`]).
+pub(crate) type AdjacencyList = SmallVec<[(u32, u32); 4]>;
 
 /// Queue entry: `(distance, push sequence, node)` packed in one integer that orders as the
 /// triple (a non-negative `f64`'s bits order as the number), so that `BinaryHeap` (of its
@@ -92,7 +96,7 @@ impl Dijkstra {
     /// `dist ≤ radius`). Returns whether `target` was settled.
     pub(crate) fn run(
         &mut self,
-        adj: &[Vec<(u32, u32)>],
+        adj: &[AdjacencyList],
         w: &[f64],
         src: usize,
         target: Option<usize>,
@@ -204,7 +208,7 @@ mod tests {
         // Two paths 0 → 3 of weight 2: through 1 (edges 0, 1) and through 2 (edges 2, 3).
         // Node 1 is pushed first (adjacency order of node 0), so 3 is reached through it.
         let ends = [(0, 1), (1, 3), (0, 2), (2, 3)];
-        let mut adj: Adjacency = vec![Vec::new(); 4];
+        let mut adj: Adjacency = vec![SmallVec::new(); 4];
         for (e, &(a, b)) in ends.iter().enumerate() {
             adj[a as usize].push((b, e as u32));
             adj[b as usize].push((a, e as u32));

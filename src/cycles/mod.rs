@@ -328,7 +328,7 @@ impl IncrementalBasis {
     /// Make sure nodes `0..n` exist.
     pub fn reserve_nodes(&mut self, n: usize) {
         while self.adj.len() < n {
-            self.adj.push(Vec::new());
+            self.adj.push(SmallVec::new());
             self.components.push();
         }
     }

@@ -76,7 +76,7 @@ pub(crate) struct Reduced {
 /// Edge lists (ids) of the biconnected blocks with at least two edges, in DFS order.
 pub(crate) fn blocks(nodes: usize, ends: &[(u32, u32)]) -> Vec<Vec<u32>> {
     const NONE: u32 = u32::MAX;
-    let mut adj: Adjacency = vec![Vec::new(); nodes];
+    let mut adj: Adjacency = vec![SmallVec::new(); nodes];
     for (e, &(a, b)) in ends.iter().enumerate() {
         adj[a as usize].push((b, e as u32));
         adj[b as usize].push((a, e as u32));
@@ -205,7 +205,7 @@ pub(crate) fn reduce(nodes: usize, ends: &[(u32, u32)], w: &[f64]) -> Reduced {
             }
             let mut b = Block {
                 nodes: branch.len(),
-                adj: vec![Vec::new(); branch.len()],
+                adj: vec![SmallVec::new(); branch.len()],
                 start: vec![0],
                 ..Block::default()
             };
