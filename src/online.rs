@@ -944,6 +944,9 @@ impl OnlineEstimator {
         let mut fresh = Self::new(self.config)?;
         fresh.warm = Some(warm);
         fresh.replaying = true;
+        // Nobody reads the estimate within the replay: its factors are built once at its end
+        // instead of being kept through every step.
+        fresh.estimate.push(Op::Defer);
         for (edge, kept) in arrivals.into_values() {
             match kept {
                 Some((rejected, due)) => {
@@ -959,6 +962,7 @@ impl OnlineEstimator {
                 }
             }
         }
+        fresh.estimate.push(Op::Rebuild);
         fresh.replaying = false;
         Ok(fresh)
     }

@@ -152,6 +152,8 @@ pub(crate) struct Laplacian<const K: usize> {
     /// The edge whose row was the last one rotated into the factor, while no row was added
     /// or removed since (its right-hand side moves by [`SqrtInfo::shift_last_row`]).
     last_edge: Option<usize>,
+    /// Changes go to the rows only, the factor is built at [`Self::rebuild`] (a replay).
+    deferred: bool,
     /// Renewals completed.
     pub renewals: usize,
     /// Steps that waited for a renewal's builder.
@@ -174,6 +176,7 @@ impl<const K: usize> Default for Laplacian<K> {
             worker: Worker::default(),
             steps: 0,
             last_edge: None,
+            deferred: false,
             renewals: 0,
             waits: 0,
         }
@@ -202,8 +205,10 @@ impl<const K: usize> Laplacian<K> {
         self.anchor.push(v);
         self.prior.push(0.0);
         self.first_weight.push(0.0);
-        self.factor.push_variable(v);
-        self.send(Msg::Variable(v as u32));
+        if !self.deferred {
+            self.factor.push_variable(v);
+            self.send(Msg::Variable(v as u32));
+        }
         v
     }
 
@@ -221,22 +226,29 @@ impl<const K: usize> Laplacian<K> {
         let (ra, rb) = (self.components.find(a), self.components.find(b));
         let (aa, ab) = (self.anchor[ra], self.anchor[rb]);
         let (winner, loser) = (aa.min(ab), aa.max(ab));
+        let live = !self.deferred;
         if self.prior[winner] == 0.0 {
             self.first_weight[winner] = self.rows.sqrt_w[e];
             self.prior[winner] = self.rows.sqrt_w[e];
             let prior = (winner, self.prior[winner]);
-            self.factor.add_row(&[prior], [0.0; K]);
-            self.send(Msg::Prior(prior));
+            if live {
+                self.factor.add_row(&[prior], [0.0; K]);
+                self.send(Msg::Prior(prior));
+            }
         }
-        self.factor.add_row(&self.rows.entries(e), self.rows.rhs(e));
-        self.last_edge = Some(e);
-        self.send(Msg::Edge(a as u32, b as u32, self.rows.sqrt_w[e], y));
+        if live {
+            self.factor.add_row(&self.rows.entries(e), self.rows.rhs(e));
+            self.last_edge = Some(e);
+            self.send(Msg::Edge(a as u32, b as u32, self.rows.sqrt_w[e], y));
+        }
         if ra != rb {
             self.components.union(a, b);
             let r = self.components.find(a);
             self.anchor[r] = winner;
             let p = self.prior[loser];
-            if p != 0.0 {
+            if p != 0.0 && !live {
+                self.prior[loser] = 0.0;
+            } else if p != 0.0 {
                 self.last_edge = None;
                 self.prior[loser] = 0.0;
                 self.send(Msg::Unprior((loser, p)));
@@ -256,6 +268,9 @@ impl<const K: usize> Laplacian<K> {
             return;
         }
         self.rows.y[e] = y;
+        if self.deferred {
+            return;
+        }
         let s = self.rows.sqrt_w[e];
         let shift: [f64; K] = std::array::from_fn(|q| s * (y[q] - old[q]));
         if self.last_edge != Some(e) || !self.factor.shift_last_row(shift) {
@@ -287,6 +302,7 @@ impl<const K: usize> Laplacian<K> {
             fill_after_renewal: self.fill_after_renewal,
             nodes_at_renewal: self.nodes_at_renewal,
             steps: self.steps,
+            deferred: self.deferred,
             ..Laplacian::default()
         }
     }
@@ -350,6 +366,46 @@ impl<const K: usize> Laplacian<K> {
         self.factor.marginal(&[(v, 1.0), (a, -1.0)])
     }
 
+    /// From now on, changes go to the rows only (no factor work, no renewal) until
+    /// [`Self::rebuild`]: a replay of many steps whose answers nobody reads in between.
+    pub fn defer(&mut self) {
+        self.renewal = None;
+        self.deferred = true;
+    }
+
+    /// Whether changes are deferred ([`Self::defer`]).
+    pub fn deferred(&self) -> bool {
+        self.deferred
+    }
+
+    /// Build the factor of the whole system at once, in a fill-reducing order with the newest
+    /// node last (as a renewal does, on this thread), and apply changes to it from now on. The
+    /// rows' measurements are first rewritten by `relinearise` (if given).
+    pub fn rebuild(&mut self, relinearise: Option<Relinearise<K>>) {
+        if let Some(job) = relinearise {
+            job(&mut self.rows.y);
+        }
+        let n = self.len();
+        let old = std::mem::replace(
+            &mut self.factor,
+            build(&self.rows, &self.prior, n, n.checked_sub(1)),
+        );
+        self.worker.retire("so2lin-renew", old);
+        self.factor.take_work();
+        self.fill_after_renewal = self.factor.nnz() as f64 / n.max(1) as f64;
+        self.nodes_at_renewal = n;
+        self.last_edge = None;
+        self.deferred = false;
+    }
+
+    /// Rewrite the rows' measurements by `relinearise` and the factor's right-hand sides with
+    /// them (one pass over the rows; the factor's order and values stay).
+    pub fn relinearise(&mut self, relinearise: Relinearise<K>) {
+        relinearise(&mut self.rows.y);
+        reset_rhs(&mut self.factor, &self.rows);
+        self.last_edge = None;
+    }
+
     /// Take the live factor's work since the last call into this system's count, and return
     /// it (a system stepped beside another credits it with this: see [`Self::credit`]).
     pub fn step_work(&mut self) -> u64 {
@@ -382,6 +438,9 @@ impl<const K: usize> Laplacian<K> {
         relinearise: impl FnOnce(&mut Self) -> Option<Relinearise<K>>,
     ) {
         self.steps += 1;
+        if self.deferred {
+            return;
+        }
         self.step_work();
         if self.renewal.is_some() {
             self.complete_renewal();
