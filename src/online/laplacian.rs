@@ -246,11 +246,11 @@ impl<const K: usize> Laplacian<K> {
             let r = self.components.find(a);
             self.anchor[r] = winner;
             let p = self.prior[loser];
-            if p != 0.0 && !live {
+            if p != 0.0 {
                 self.prior[loser] = 0.0;
-            } else if p != 0.0 {
+            }
+            if p != 0.0 && live {
                 self.last_edge = None;
-                self.prior[loser] = 0.0;
                 self.send(Msg::Unprior((loser, p)));
                 if self.factor.remove_row(&[(loser, p)], [0.0; K]).is_err() {
                     // Numerically the prior was the only information left: rebuild now.
@@ -390,7 +390,9 @@ impl<const K: usize> Laplacian<K> {
             &mut self.factor,
             build(&self.rows, &self.prior, n, n.checked_sub(1)),
         );
-        self.worker.retire("so2lin-renew", old);
+        if old.len() > 0 {
+            self.worker.retire("so2lin-renew", old);
+        }
         self.factor.take_work();
         self.fill_after_renewal = self.factor.nnz() as f64 / n.max(1) as f64;
         self.nodes_at_renewal = n;
