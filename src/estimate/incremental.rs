@@ -20,9 +20,10 @@
 //!
 //! Reading: `x = R⁻¹ d` by back-substitution. The last variable is `d_n / R_nn` (O(1)); one
 //! variable costs its elimination-tree path to the root; all of them one back-substitution.
-//! A marginal variance is `‖R⁻ᵀ e_v‖²` (one forward solve along the path). Nothing here ever
-//! factors a matrix from scratch: [`SqrtInfo::rebuild`] (a fill-reducing order) is the same row
-//! rotation applied to every row, and the owner runs it beside the live factor.
+//! A marginal variance is `‖R⁻ᵀ e_v‖²` (one forward solve along the path). No update factors
+//! a matrix from scratch: that is [`SqrtInfo::factored`] alone (a new fill-reducing order, by a
+//! sparse Cholesky of the normal equations), which the owner runs beside the live factor (a
+//! renewal) or once at the end of a replay whose answers nobody read.
 //!
 //! Written by hand because no maintained crate offers a sparse QR/Cholesky factor that can be
 //! grown, down-dated and read in place one row at a time (faer's sparse Cholesky refactors).
