@@ -412,6 +412,9 @@ pub struct OnlineEstimator {
     paths: replay::Paths,
     /// Within a replay: the replaced estimator's [`replay::Paths`].
     hints: Option<replay::Hints>,
+    /// Whether a replay of this estimator reuses them (off only to test that it decides as a
+    /// replay that searches every cycle again).
+    reuse_paths: bool,
     /// Quarantined loop closures by input index.
     held: BTreeMap<usize, Held>,
     /// Their re-test schedule: (cycle count at which to re-test, input index).
@@ -564,6 +567,7 @@ impl OnlineEstimator {
             input_of: Vec::new(),
             paths: replay::Paths::default(),
             hints: None,
+            reuse_paths: true,
             held: BTreeMap::new(),
             due: BTreeSet::new(),
             scale: closure::Scale::default(),

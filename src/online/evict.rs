@@ -360,7 +360,8 @@ impl OnlineEstimator {
         let mut fresh = Self::new(self.config)?;
         fresh.warm = Some(warm);
         fresh.replaying = true;
-        fresh.hints = Some(replay::Hints::new(self.paths.clone()));
+        fresh.reuse_paths = self.reuse_paths;
+        fresh.hints = (self.reuse_paths).then(|| replay::Hints::new(self.paths.clone()));
         // Nobody reads the estimate within the replay: its factors are built once at its end
         // instead of being kept through every step.
         fresh.estimate.push(Op::Defer);

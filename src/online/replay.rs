@@ -148,4 +148,63 @@ mod tests {
         hints.entered(4, 5);
         assert!(hints.cycle(3, &own, 2).is_none());
     }
+
+    /// Streams whose evictions replay (simulated worlds, declared noise 16× too wide, 40 random
+    /// false loop closures) decide the same, to the bit, whether their replays reuse the
+    /// failed paths or search every cycle again.
+    #[test]
+    fn a_replay_that_reuses_paths_decides_as_one_that_searches() {
+        use crate::graph::{Edge, Information};
+        use crate::online::{OnlineConfig, OnlineEstimator};
+        use crate::sim::{OutlierConfig, OutlierKind, SimConfig, inject_outliers, simulate};
+        let mut replays = 0;
+        for seed in 0..4u64 {
+            let world = simulate(&SimConfig::new(1000, 700 + seed)).unwrap();
+            let bad = inject_outliers(
+                &world.graph,
+                &OutlierConfig {
+                    count: 40,
+                    kind: OutlierKind::Random,
+                    seed,
+                },
+            )
+            .unwrap();
+            let edges: Vec<Edge> = (bad.graph.edges().iter())
+                .map(|e| {
+                    let wide = Information(e.information().0.map(|v| v / 16.0));
+                    Edge::new(e.from(), e.to(), e.measurement(), wide).unwrap()
+                })
+                .collect();
+            let run = |reuse: bool| {
+                let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+                est.reuse_paths = reuse;
+                for edge in crate::online::robot_order(&edges) {
+                    est.add_edge(edge).unwrap();
+                }
+                est
+            };
+            let (mut reused, mut searched) = (run(true), run(false));
+            replays += usize::from(reused.replay_work > 0);
+            assert_eq!(reused.replay_work, searched.replay_work, "seed {seed}");
+            let bits = |est: &OnlineEstimator| -> Vec<(usize, u64)> {
+                (est.rejected().iter())
+                    .map(|r| (r.edge, r.statistic.to_bits()))
+                    .collect()
+            };
+            assert_eq!(bits(&reused), bits(&searched), "seed {seed}");
+            assert_eq!(reused.gamma(), searched.gamma(), "seed {seed}");
+            let theta = |est: &mut OnlineEstimator| -> Vec<u64> {
+                est.orientations()
+                    .unwrap()
+                    .iter()
+                    .map(|t| t.to_bits())
+                    .collect()
+            };
+            assert_eq!(theta(&mut reused), theta(&mut searched), "seed {seed}");
+        }
+        assert!(
+            replays > 0,
+            "no world evicted anything: the test would test nothing"
+        );
+    }
 }
