@@ -14,8 +14,8 @@
 //! pushed; node indices never break ties, so the result depends only on the adjacency order.
 //! Cost of a call: `O(E_v log E_v)` for the `E_v` edges incident to the settled nodes; a queue
 //! entry is one 128-bit integer and a node's state one record (distance, predecessor, stamps),
-//! which made the searches of a stream with 1 000 false loop closures 18 % faster than a
-//! float-and-integer entry and four arrays.
+//! which made the searches of a stream with 1 000 false loop closures (M3500, robot order) 18 %
+//! faster than a float-and-integer entry and four arrays.
 
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;

@@ -15,8 +15,9 @@
 //! go to the systems' rows only ([`Op::Defer`]), and the factors are built once at the
 //! replay's end ([`Op::Rebuild`]: a fill-reducing order with the newest node last, every
 //! position row at the headings of that moment, as a renewal does), instead of being kept
-//! through every replayed step. On M3500 + 1000 false loop closures this took the worst step
-//! (a replay) from 110–140 ms to 52–72 ms.
+//! through every replayed step. On M3500 + 1000 false loop closures (`so2lin stream`, robot
+//! order, the newest pose read after every step) this took the worst step (a replay) from
+//! 110–140 ms to 52–72 ms.
 //!
 //! **Positions** (the linear estimate's model: headings treated as exact): the position row of
 //! an edge uses the tail's heading as estimated right after the edge's step — read at the newer

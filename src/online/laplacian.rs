@@ -386,18 +386,23 @@ impl<const K: usize> Laplacian<K> {
             job(&mut self.rows.y);
         }
         let n = self.len();
-        let old = std::mem::replace(
-            &mut self.factor,
-            build(&self.rows, &self.prior, n, n.checked_sub(1)),
-        );
+        self.install(build(&self.rows, &self.prior, n, n.checked_sub(1)));
+        self.nodes_at_renewal = n;
+        self.deferred = false;
+    }
+
+    /// Swap in a factor built in a new order (a renewal's, or a rebuild's): its build's work is
+    /// not the live factor's, its fill per row is the next renewal's reference, and the old
+    /// factor is freed on the worker (a factor's thousands of rows cost a step about a
+    /// millisecond to free).
+    fn install(&mut self, mut fresh: SqrtInfo<K>) {
+        fresh.take_work();
+        self.fill_after_renewal = fresh.nnz() as f64 / self.len().max(1) as f64;
+        self.last_edge = None;
+        let old = std::mem::replace(&mut self.factor, fresh);
         if old.len() > 0 {
             self.worker.retire("so2lin-renew", old);
         }
-        self.factor.take_work();
-        self.fill_after_renewal = self.factor.nnz() as f64 / n.max(1) as f64;
-        self.nodes_at_renewal = n;
-        self.last_edge = None;
-        self.deferred = false;
     }
 
     /// Rewrite the rows' measurements by `relinearise` and the factor's right-hand sides with
@@ -529,19 +534,14 @@ impl<const K: usize> Laplacian<K> {
         let Some((r, _)) = self.renewal.take() else {
             return;
         };
-        let Some((mut fresh, y)) = r.collect(&mut self.waits) else {
+        let Some((fresh, y)) = r.collect(&mut self.waits) else {
             return;
         };
-        // The builder's work is not the live factor's.
-        fresh.take_work();
         if y.len() != self.rows.y.len() {
             return;
         }
         self.rows.y = y;
-        self.fill_after_renewal = fresh.nnz() as f64 / self.len().max(1) as f64;
-        self.last_edge = None;
-        let old = std::mem::replace(&mut self.factor, fresh);
-        self.worker.retire("so2lin-renew", old);
+        self.install(fresh);
         self.renewals += 1;
     }
 }
