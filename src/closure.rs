@@ -314,7 +314,9 @@ impl C2 {
         C2(self.0 + o.0, self.1 + o.1)
     }
     fn polar(phase: f64) -> C2 {
-        C2(libm::cos(phase), libm::sin(phase))
+        // One argument reduction for both (the same bits as libm::sin and libm::cos apart).
+        let (s, c) = libm::sincos(phase);
+        C2(c, s)
     }
 }
 

@@ -74,7 +74,7 @@ impl Pose2 {
     /// `self ⊕ z`: the pose reached from `self` by the relative pose `z` (angles add, not
     /// wrapped). Trigonometry from `libm`, so results are the same on every platform.
     pub fn compose(self, z: Pose2) -> Pose2 {
-        let (s, c) = (libm::sin(self.theta), libm::cos(self.theta));
+        let (s, c) = libm::sincos(self.theta);
         Pose2::new(
             self.x + c * z.x - s * z.y,
             self.y + s * z.x + c * z.y,
@@ -84,7 +84,7 @@ impl Pose2 {
 
     /// `self⁻¹`, the relative pose back.
     pub fn inverse(self) -> Pose2 {
-        let (s, c) = (libm::sin(self.theta), libm::cos(self.theta));
+        let (s, c) = libm::sincos(self.theta);
         Pose2::new(
             -(c * self.x + s * self.y),
             s * self.x - c * self.y,
@@ -94,7 +94,7 @@ impl Pose2 {
 
     /// `self⁻¹ ⊕ b`: the pose `b` in the frame of `self` (angle difference not wrapped).
     pub fn between(self, b: Pose2) -> Pose2 {
-        let (s, c) = (libm::sin(self.theta), libm::cos(self.theta));
+        let (s, c) = libm::sincos(self.theta);
         let (dx, dy) = (b.x - self.x, b.y - self.y);
         Pose2::new(c * dx + s * dy, -s * dx + c * dy, b.theta - self.theta)
     }

@@ -246,7 +246,7 @@ fn log_chart(e: [f64; 3]) -> ([f64; 3], Block) {
             -th / 6.0 - t2 * th / 180.0,
         )
     } else {
-        let (s, c) = (libm::sin(h), libm::cos(h));
+        let (s, c) = libm::sincos(h);
         (h * c / s, 0.5 * (c / s - h / (s * s)))
     };
     (
@@ -261,8 +261,8 @@ fn log_chart(e: [f64; 3]) -> ([f64; 3], Block) {
 
 /// The t2v error of one edge and its Jacobians w.r.t. `(x_i, y_i, θ_i)` and `(x_j, y_j, θ_j)`.
 fn t2v_linearised(z: Pose2, xi: Pose2, xj: Pose2) -> ([f64; 3], Block, Block) {
-    let (si, ci) = (libm::sin(xi.theta), libm::cos(xi.theta));
-    let (sz, cz) = (libm::sin(z.theta), libm::cos(z.theta));
+    let (si, ci) = libm::sincos(xi.theta);
+    let (sz, cz) = libm::sincos(z.theta);
     let (dx, dy) = (xj.x - xi.x, xj.y - xi.y);
     // R_iᵀ d and its derivative in θ_i.
     let (lx, ly) = (ci * dx + si * dy, -si * dx + ci * dy);
