@@ -11,7 +11,11 @@
 //! y = L⁻¹ P_{U,new},   mean = μ_new + yᵀz,   var = P_new,new − ‖y‖²,   Γ = Z ∩ [mean ± q·sd].
 //! ```
 //!
-//! A single candidate determines the cycle (a row is appended to L). When a cycle is
+//! A single candidate determines the cycle (a row is appended to L). While no cycle is
+//! ambiguous the same moments come from the estimate's factor instead (module `predict`):
+//! rotating the new loop closure's heading row into it leaves the loop closure's prediction
+//! error and its variance, the row is kept when the cycle is determined, and L receives the
+//! cycles determined that way only when it is next used. When a cycle is
 //! determined, the ambiguous cycles that share information with it directly — a nonzero
 //! `(P_γ)_ij`, i.e. a common edge — are re-screened with fresh conditional moments, and a
 //! re-screen that leaves one candidate determines that cycle too (and so on). Ambiguous cycles
@@ -109,7 +113,8 @@
 //! and [`OnlineEstimator::orientation`] back-substitute along one path,
 //! [`OnlineEstimator::orientations`] and [`OnlineEstimator::poses`] over the whole factor.
 //!
-//! **No stalls**: the factor of P_UU and the estimate's factors are renewed in a fill-reducing
+//! **No stalls**: the factor of P_UU (when it grows: module `predict`) and the estimate's
+//! factors are renewed in a fill-reducing
 //! order on a worker thread, which is sent every later change and applies it itself; the new
 //! factor is collected once the live factor has done as much work (entries of the factor
 //! visited, counted) as the builder is expected to need, and swapped in (`online/renewal.rs`),
@@ -121,6 +126,7 @@ use smallvec::SmallVec;
 mod estimate;
 mod evict;
 mod laplacian;
+mod predict;
 mod renewal;
 mod replay;
 
@@ -438,6 +444,14 @@ pub struct OnlineEstimator {
     /// Set while the estimator is being rebuilt by a replay: no examination (no
     /// nested rebuild); the suspects it counts are examined at the next step.
     replaying: bool,
+    /// Whether new cycles are screened with the estimate's prediction when it holds exactly
+    /// the determined cycles' information (off only to test that it decides as P_UU does).
+    predicts: bool,
+    /// Cycles determined from the estimate's prediction and not yet appended to the P_UU
+    /// factor, in the order determined: (cycle, value, conditional sd of γ).
+    backlog: Vec<(u32, i64, f64)>,
+    /// New cycles screened by prediction so far.
+    predicted: usize,
 }
 
 /// Cycles whose conditional sd of γ is below this feed the angle noise scale: their nearest
@@ -577,6 +591,9 @@ impl OnlineEstimator {
             suspects_due: BTreeSet::new(),
             replay_work: 0,
             replaying: false,
+            predicts: true,
+            backlog: Vec::new(),
+            predicted: 0,
         })
     }
 
@@ -657,7 +674,7 @@ impl OnlineEstimator {
         self.basis.commit(a, b, edge.sigma2(), false);
         self.counters.tree_edges += 1;
         let new_node = self.graph.node_count() > nodes_before;
-        self.push_edge(e, a, b, &[]);
+        self.push_edge(e, a, b, &[], false);
         self.after_step();
         Ok(Step {
             edge: input,
@@ -751,9 +768,24 @@ impl OnlineEstimator {
         // that fails it is not determined.
         let root = self.angle_scale().sqrt();
         let fails = |m: Moments| quarantine && normalised_residual(m) / root > q;
-        let (m, iv, determined) =
-            self.screener
-                .screen_unless(&self.model, t, q, || edges_of(&cycle), fails);
+        // The moments from the estimate's factor when it holds exactly the determined
+        // cycles' information (module docs: one factor); otherwise from P_UU.
+        let predicted = self.predict(&cycle, &edge, a, b);
+        let (m, iv, determined) = match predicted {
+            Some(m) => {
+                let (iv, value) = (self.screener).screen_given(t, m, q, || edges_of(&cycle), fails);
+                if let Some(v) = value {
+                    self.backlog.push((t as u32, v, m.sd()));
+                } else {
+                    self.estimate.undo_chord();
+                }
+                (m, iv, value.is_some())
+            }
+            None => {
+                self.sync_conditioner();
+                (self.screener).screen_unless(&self.model, t, q, || edges_of(&cycle), fails)
+            }
+        };
         let residual = normalised_residual(m) / root;
         let far = self.config.screening.quantile_at(self.eviction_level(t));
         if quarantine && m.sd() < ANGLE_SCALE_MAX_SD && residual <= far {
@@ -764,6 +796,9 @@ impl OnlineEstimator {
         // s_θ > 1 (the declared angle noise too tight, [`closure::Scale`]) such a cycle is
         // judged in the noise the data show: accepted as inconsistent, its loop closure kept.
         if fails(m) {
+            if predicted.is_some() {
+                self.estimate.undo_chord();
+            }
             self.model.pop_cycle(&cycle);
             self.screener.truncate(t);
             self.sigma2.pop();
@@ -791,7 +826,11 @@ impl OnlineEstimator {
         self.cycles.push(cycle);
         self.gamma.push(0);
         let mut rescreened = Vec::new();
-        if determined {
+        let kept = predicted.is_some() && determined;
+        if kept {
+            // No cycle is ambiguous: none to re-screen, and P_UU does not grow.
+            self.estimate.keep_chord();
+        } else if determined {
             self.propagate(t, &mut rescreened);
             self.maybe_reorder();
         } else {
@@ -801,7 +840,7 @@ impl OnlineEstimator {
         // moved with the re-screened cycles.
         let changed =
             self.update_wraps(std::iter::once(t).chain(rescreened.iter().map(|r| r.cycle)));
-        self.push_edge(e, a, b, &changed);
+        self.push_edge(e, a, b, &changed, kept);
         self.after_step();
         Ok(Ok(Step {
             edge: input,
@@ -917,10 +956,16 @@ impl OnlineEstimator {
 
     /// Hand a step's edge to the estimate: its orientation row (with its wrap), the rows
     /// whose wrap moved, its position row, the end of the step.
-    fn push_edge(&mut self, e: usize, a: usize, b: usize, changed: &[usize]) {
+    /// A chord whose heading row is in already (kept after its prediction, with no wrap)
+    /// gets its wrap.
+    fn push_edge(&mut self, e: usize, a: usize, b: usize, changed: &[usize], admitted: bool) {
         let (e32, a, b) = (e as u32, a as u32, b as u32);
         let y = self.wrapped(e);
-        self.estimate.push(Op::Edge { e: e32, a, b, y });
+        if admitted {
+            self.estimate.push(Op::Wrap { e: e32, y });
+        } else {
+            self.estimate.push(Op::Edge { e: e32, a, b, y });
+        }
         for &c in changed {
             if c != e {
                 let y = self.wrapped(c);
@@ -940,10 +985,10 @@ impl OnlineEstimator {
     /// The current best γ of cycle i: its determined value, or the rounded conditional mean
     /// (clamped to its candidates) of an ambiguous one.
     fn best_gamma(&self, i: usize) -> i64 {
-        if let Some(v) = self.screener.cond.value(i) {
-            return v;
-        }
         let iv = self.screener.interval(i);
+        if self.screener.is_determined(i) {
+            return iv.lo;
+        }
         match self.ambiguous.get(&i) {
             Some(m) => (m.mean.round() as i64).clamp(iv.lo, iv.hi),
             None => iv.lo,
@@ -1148,7 +1193,7 @@ impl OnlineEstimator {
 
     fn refresh_counters(&mut self) {
         self.counters.quarantined = self.held.len();
-        self.counters.determined = self.screener.cond.len();
+        self.counters.determined = self.screener.cond.len() + self.backlog.len();
         self.counters.ambiguous = self.ambiguous.len();
         self.counters.inconsistent = self.screener.inconsistent_count();
         let (renewals, waits) = self.estimate.renewals();
@@ -1323,8 +1368,10 @@ impl OnlineEstimator {
     /// stays a lower bound).
     pub fn success_probability_lower_bound(&self) -> f64 {
         let sds = self.screener.cond.conditional_sds().iter().copied();
+        let backlog = self.backlog.iter().map(|&(_, _, sd)| sd);
         let amb = self.ambiguous.values().map(Moments::sd);
-        sds.chain(amb)
+        sds.chain(backlog)
+            .chain(amb)
             .map(|s| rounding_success(s).ln())
             .sum::<f64>()
             .exp()
@@ -1338,9 +1385,13 @@ impl OnlineEstimator {
             kind: BasisKind::Incremental,
             cycles: self.cycles.clone(),
         };
+        let mut screener = self.screener.clone();
+        if let Some(fresh) = predict::with_backlog(&mut screener, &self.model, &self.backlog) {
+            screener.cond = fresh;
+        }
         let screened = batch::run_screening(
             &self.model,
-            self.screener.clone(),
+            screener,
             &self.config.screening,
             &|t| self.config.screening.online_quantile(t),
             &basis,

@@ -625,6 +625,16 @@ pub struct Screener {
     inconsistent_count: usize,
 }
 
+/// The first screening's decision on moments `m` at half-width factor `q`: the one integer
+/// left in the interval, unless `veto(m)`.
+fn decision(m: Moments, q: f64, veto: &impl Fn(Moments) -> bool) -> Option<i64> {
+    if veto(m) {
+        None
+    } else {
+        Interval::new(m, q).single()
+    }
+}
+
 impl Screener {
     /// An empty state.
     pub fn new() -> Self {
@@ -727,24 +737,43 @@ impl Screener {
         edges: impl FnOnce() -> Vec<usize>,
         veto: impl Fn(Moments) -> bool,
     ) -> (Moments, Interval, bool) {
-        let (m, outcome) = self.cond.decide(model, i, |m| {
-            if veto(m) {
-                None
-            } else {
-                Interval::new(m, q).single()
-            }
-        });
+        let (m, outcome) = self.cond.decide(model, i, |m| decision(m, q, &veto));
         let iv = self.test(i, m, q, edges);
         if let Ok(Some(v)) = outcome {
-            self.determined[i] = true;
-            self.intervals[i] = Interval {
-                lo: v,
-                hi: v,
-                inconsistent: false,
-            };
+            self.settle(i, v);
             return (m, iv, true);
         }
         (m, iv, false)
+    }
+
+    /// [`Self::screen_unless`] with the conditional moments `m` of cycle i given the
+    /// determined set computed by the caller (the online estimator's prediction from its
+    /// factor): the same test and decision. A cycle determined here is not appended to the
+    /// conditioner; the caller appends it ([`Self::determine`]) before the conditioner is used
+    /// again. Returns its candidates and its value when determined.
+    pub fn screen_given(
+        &mut self,
+        i: usize,
+        m: Moments,
+        q: f64,
+        edges: impl FnOnce() -> Vec<usize>,
+        veto: impl Fn(Moments) -> bool,
+    ) -> (Interval, Option<i64>) {
+        let value = decision(m, q, &veto);
+        let iv = self.test(i, m, q, edges);
+        if let Some(v) = value {
+            self.settle(i, v);
+        }
+        (iv, value)
+    }
+
+    fn settle(&mut self, i: usize, v: i64) {
+        self.determined[i] = true;
+        self.intervals[i] = Interval {
+            lo: v,
+            hi: v,
+            inconsistent: false,
+        };
     }
 
     /// Determine cycle i with value v (appends to the conditioner). On error nothing changes.
@@ -755,12 +784,7 @@ impl Screener {
         v: i64,
     ) -> Result<Moments, SingularError> {
         let m = self.cond.determine(model, i, v)?;
-        self.determined[i] = true;
-        self.intervals[i] = Interval {
-            lo: v,
-            hi: v,
-            inconsistent: false,
-        };
+        self.settle(i, v);
         Ok(m)
     }
 

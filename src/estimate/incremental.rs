@@ -71,6 +71,32 @@ pub(crate) struct SqrtInfo<const K: usize> {
     gains: Vec<(u32, f64)>,
     /// Whether `gains` still describe R (no row added or removed since).
     gains_valid: bool,
+    /// What a tentative row changed ([`Self::try_row`]), to put back on [`Self::undo_row`].
+    undo: Option<Box<Undo<K>>>,
+    /// Whether the rotation in progress records into `undo`.
+    recording: bool,
+}
+
+/// The state a tentative row ([`SqrtInfo::try_row`]) overwrote: per row of R it rotated, its
+/// position, its entries (a range of `entries`), diagonal and right-hand side; and the
+/// factor-wide counts and gains.
+#[derive(Clone, Debug, Default)]
+struct Undo<const K: usize> {
+    rows: Vec<(u32, u32, u32, f64, [f64; K])>,
+    entries: Vec<(u32, f64)>,
+    nnz: usize,
+    work: u64,
+    gains: Vec<(u32, f64)>,
+    gains_valid: bool,
+}
+
+/// What rotating a row `aᵀx = β` into R leaves ([`SqrtInfo::try_row`]): the part of each
+/// right-hand side no rotation absorbed, `(β − aᵀx̂)·Πc`, and `Πc`, the product of the
+/// rotations' cosines, `1/√(1 + ‖R⁻ᵀa‖²)` (x̂ the solution before the row).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Leftover<const K: usize> {
+    pub residual: [f64; K],
+    pub cosines: f64,
 }
 
 impl<const K: usize> Default for SqrtInfo<K> {
@@ -90,6 +116,8 @@ impl<const K: usize> Default for SqrtInfo<K> {
             path: Vec::new(),
             gains: Vec::new(),
             gains_valid: false,
+            undo: None,
+            recording: false,
         }
     }
 }
@@ -151,6 +179,57 @@ impl<const K: usize> SqrtInfo<K> {
         let _ = self.rotate(beta, false);
     }
 
+    /// Add the row `Σ a_v x_v = β` like [`Self::add_row`], keeping what it overwrites until
+    /// [`Self::keep_row`] or [`Self::undo_row`] (no other change in between). Returns the
+    /// [`Leftover`]: the row's prediction error and variance come with the rotations that add
+    /// it (`β − aᵀx̂ = residual/Πc`, `1 + aᵀ(RᵀR)⁻¹a = 1/Πc²`), so a caller can judge the row
+    /// before keeping it, at the cost of one copy of the rows it touched.
+    pub fn try_row(&mut self, entries: &[(usize, f64)], beta: [f64; K]) -> Leftover<K> {
+        let mut undo = self.undo.take().unwrap_or_default();
+        undo.rows.clear();
+        undo.entries.clear();
+        undo.nnz = self.nnz;
+        undo.work = self.work;
+        undo.gains.clone_from(&self.gains);
+        undo.gains_valid = self.gains_valid;
+        self.undo = Some(undo);
+        self.load(entries);
+        let (residual, cosines) = self.rotate_recording(beta);
+        Leftover { residual, cosines }
+    }
+
+    /// Keep the row of the last [`Self::try_row`].
+    pub fn keep_row(&mut self) {
+        if let Some(u) = &mut self.undo {
+            u.rows.clear();
+            u.entries.clear();
+        }
+    }
+
+    /// Take back the row of the last [`Self::try_row`]: R, d, the gains and the work count
+    /// exactly as before it (bit for bit; the rows it filled get their old entries back).
+    pub fn undo_row(&mut self) {
+        let Some(mut u) = self.undo.take() else {
+            return;
+        };
+        for &(k, start, len, diag, d) in u.rows.iter().rev() {
+            let k = k as usize;
+            let row = &mut self.rows[k];
+            row.clear();
+            row.extend_from_slice(&u.entries[start as usize..(start + len) as usize]);
+            self.diag[k] = diag;
+            self.d[k] = d;
+        }
+        self.nnz = u.nnz;
+        // Work counts what stays: a renewal is due after the same work with or without it.
+        self.work = u.work;
+        std::mem::swap(&mut self.gains, &mut u.gains);
+        self.gains_valid = u.gains_valid;
+        u.rows.clear();
+        u.entries.clear();
+        self.undo = Some(u);
+    }
+
     /// Remove a row previously added (hyperbolic rotations). On failure the factor is left
     /// partly updated; the owner rebuilds it.
     pub fn remove_row(
@@ -159,11 +238,26 @@ impl<const K: usize> SqrtInfo<K> {
         beta: [f64; K],
     ) -> Result<(), Indefinite> {
         self.load(entries);
-        self.rotate(beta, true)
+        self.rotate(beta, true).map(|_| ())
     }
 
     /// Rotate the row in `self.w` (positions) with right-hand side `beta` into R.
-    fn rotate(&mut self, mut beta: [f64; K], downdate: bool) -> Result<(), Indefinite> {
+    /// [`Self::rotate`] of an update, recording every row it changes in `self.undo`: the
+    /// leftover right-hand side and the product of the cosines.
+    fn rotate_recording(&mut self, beta: [f64; K]) -> ([f64; K], f64) {
+        self.recording = self.undo.is_some();
+        let out = self.rotate(beta, false).unwrap_or(([0.0; K], 1.0));
+        self.recording = false;
+        out
+    }
+
+    /// Rotate the row in `self.w` (right-hand side β) into R (a hyperbolic downdate when
+    /// `downdate`): the leftover right-hand side and the product of the cosines.
+    fn rotate(
+        &mut self,
+        mut beta: [f64; K],
+        downdate: bool,
+    ) -> Result<([f64; K], f64), Indefinite> {
         let mut w = std::mem::take(&mut self.w);
         let mut next = std::mem::take(&mut self.w_next);
         let mut head = 0;
@@ -176,11 +270,20 @@ impl<const K: usize> SqrtInfo<K> {
                 head += 1;
             }
             if head >= w.len() {
-                break Ok(());
+                break Ok((beta, gain));
             }
             let (k, wk) = w[head];
             let k = k as usize;
             self.work += (1 + self.rows[k].len() + w.len() - head) as u64;
+            if self.recording
+                && let Some(u) = &mut self.undo
+            {
+                let row = &self.rows[k];
+                let start = u.entries.len() as u32;
+                u.entries.extend_from_slice(row);
+                u.rows
+                    .push((k as u32, start, row.len() as u32, self.diag[k], self.d[k]));
+            }
             let r = self.diag[k];
             let (c, s, rho) = if downdate {
                 let rho2 = r * r - wk * wk;
@@ -973,6 +1076,66 @@ mod tests {
         assert!((9.0 * scaled.marginal(&[(5, 1.0)]) - f.marginal(&[(5, 1.0)])).abs() < 1e-12);
         f.remove_row(&last, [beta[0] + 0.5, beta[1] - 2.0]).unwrap();
         assert!(!f.shift_last_row([1.0, 1.0]));
+    }
+
+    /// A tried row leaves the prediction error and variance of the row before it
+    /// (`residual/Πc = β − aᵀx̂`, `1/Πc² − 1 = ‖R⁻ᵀa‖²`); taken back, the factor is the one
+    /// before, bit for bit (rows it filled included), and its gains still shift the row added
+    /// before it; kept, it is the factor `add_row` gives.
+    #[test]
+    fn a_tried_row_predicts_and_is_taken_back_exactly() {
+        let mut s = 11u64;
+        let n = 25;
+        let mut f = SqrtInfo::<2>::new();
+        for v in 0..n {
+            f.push_variable(v);
+        }
+        f.add_row(&[(0, 1.0)], [0.0; 2]);
+        for v in 1..n {
+            f.add_row(&[(v - 1, -1.0), (v, 1.0)], [lcg(&mut s), lcg(&mut s)]);
+        }
+        for _ in 0..15 {
+            let (a, b) = (
+                (lcg(&mut s) * n as f64) as usize,
+                (lcg(&mut s) * n as f64) as usize,
+            );
+            if a != b {
+                f.add_row(&[(a, -2.0), (b, 2.0)], [lcg(&mut s), lcg(&mut s)]);
+            }
+        }
+        // A loop closure across the chain: its row meets fill on its path.
+        let row = [(2, -3.0), (n - 3, 3.0)];
+        let beta = [0.4, -1.1];
+        let x0 = f.solve(0);
+        let predicted = 3.0 * (x0[n - 3] - x0[2]);
+        let var = f.marginal(&row);
+        let before = f.clone();
+        let left = f.try_row(&row, beta);
+        assert!(left.cosines > 0.0 && left.cosines < 1.0);
+        let error = left.residual[0] / left.cosines;
+        assert!((error - (beta[0] - predicted)).abs() < 1e-12, "{error}");
+        let ratio = 1.0 / (left.cosines * left.cosines) - 1.0;
+        assert!(
+            (ratio - var).abs() < 1e-12 * var.max(1.0),
+            "{ratio} vs {var}"
+        );
+        f.undo_row();
+        assert_eq!(f.rows, before.rows);
+        assert_eq!(f.diag, before.diag);
+        assert_eq!(f.d, before.d);
+        assert_eq!(
+            (f.nnz, &f.gains, f.gains_valid),
+            (before.nnz, &before.gains, true)
+        );
+        assert_eq!(f.work, before.work);
+        // Tried and kept: what add_row gives.
+        let mut g = before.clone();
+        g.add_row(&row, beta);
+        let _ = f.try_row(&row, beta);
+        f.keep_row();
+        assert_eq!((&f.rows, &f.diag, &f.d), (&g.rows, &g.diag, &g.d));
+        assert!(f.shift_last_row([1.0, 0.0]) && g.shift_last_row([1.0, 0.0]));
+        assert_eq!(f.d, g.d);
     }
 
     /// A zero pivot (a variable no row touches) makes the Cholesky give up, not panic.

@@ -109,6 +109,17 @@ pub(crate) struct Estimate {
     /// Some edge's translation information is not isotropic.
     anisotropic: bool,
     pending: Vec<Op>,
+    /// The weights of a loop closure tried ([`Self::try_chord`]) and not yet kept or undone.
+    tried: Option<(f64, f64, bool)>,
+}
+
+/// A loop closure's prediction by the headings' factor ([`Estimate::try_chord`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Prediction {
+    /// `δ − (θ̂_b − θ̂_a)`: the measurement, unwrapped by no turn, minus its prediction.
+    pub innovation: f64,
+    /// `σ² + Var(θ̂_b − θ̂_a)`: the innovation's variance.
+    pub variance: f64,
 }
 
 /// `R(θ) t`: a relative translation in the world frame of a tail with heading θ.
@@ -155,27 +166,36 @@ impl Factors {
     /// Keep the shared factor if edge (heading weight `w`, position weight `w_pos`,
     /// `isotropic`) keeps the weights proportional; split it otherwise.
     fn admit(&mut self, w: f64, w_pos: f64, isotropic: bool) {
-        let Factors::Shared { both, ratio } = self else {
-            return;
-        };
-        let r = w_pos / w;
         // Equal up to the rounding of σ² (weights proportional in the file give ratios a few
         // ulps apart): the positions' weights then differ from λ/σ² by that relative amount,
         // which moves the solution by as little.
-        let keeps = isotropic
-            && r > 0.0
-            && r.is_finite()
-            && ratio.is_none_or(|l| (l - r).abs() <= RATIO_TOLERANCE * l);
-        if keeps {
-            *ratio = Some(r);
+        if self.keeps(w, w_pos, isotropic) {
+            if let Factors::Shared { ratio, .. } = self {
+                *ratio = Some(w_pos / w);
+            }
             return;
         }
+        let Factors::Shared { both, ratio } = self else {
+            return;
+        };
         let scale = ratio.map_or(1.0, f64::sqrt);
         // The counters go on in the headings' factor.
         let mut heads = both.columns([0], 1.0);
         (heads.renewals, heads.waits) = (both.renewals, both.waits);
         let positions = Box::new(both.columns([1, 2], scale));
         *self = Factors::Split { heads, positions };
+    }
+
+    /// Whether an edge with these weights keeps a shared factor shared ([`Self::admit`]).
+    fn keeps(&self, w: f64, w_pos: f64, isotropic: bool) -> bool {
+        let Factors::Shared { ratio, .. } = self else {
+            return true;
+        };
+        let r = w_pos / w;
+        isotropic
+            && r > 0.0
+            && r.is_finite()
+            && ratio.is_none_or(|l| (l - r).abs() <= RATIO_TOLERANCE * l)
     }
 
     /// Orientation of node v.
@@ -265,8 +285,76 @@ impl Estimate {
         matches!(self.factors, Factors::Shared { .. })
     }
 
+    /// The headings' prediction of a loop closure a → b (`edge`, not yet in `graph`), from its
+    /// heading row rotated in tentatively with no wrap (`y = δ`): the rotations leave
+    /// `√w (δ − (θ̂_b − θ̂_a)) Πc` with `1/Πc² = 1 + w Var(θ̂_b − θ̂_a)`, `w = 1/σ²`. The row
+    /// must then be kept ([`Self::keep_chord`], its wrap set by an [`Op::Wrap`]) or taken back
+    /// ([`Self::undo_chord`]) before anything else. `None` (nothing done) when the factors are
+    /// deferred, or the edge would split a shared factor.
+    pub fn try_chord(
+        &mut self,
+        graph: &PoseGraph,
+        edge: &Edge,
+        a: usize,
+        b: usize,
+    ) -> Option<Prediction> {
+        // Not `sync`: within a deferral (a replay) the factors stay unbuilt.
+        self.apply_pending(graph);
+        let w = edge.sigma2().recip();
+        let (w_pos, isotropic) = position_weight(edge);
+        if self.factors.deferred() || !self.factors.keeps(w, w_pos, isotropic) {
+            return None;
+        }
+        let delta = edge.delta();
+        let left = match &mut self.factors {
+            Factors::Shared { both, .. } => {
+                (both.try_edge(a, b, w, [delta, 0.0, 0.0])).map(|l| (l.residual[0], l.cosines))
+            }
+            Factors::Split { heads, .. } => heads
+                .try_edge(a, b, w, [delta])
+                .map(|l| (l.residual[0], l.cosines)),
+        };
+        let (residual, cosines) = left?;
+        self.tried = Some((w, w_pos, isotropic));
+        Some(Prediction {
+            innovation: residual / (w.sqrt() * cosines),
+            variance: edge.sigma2() / (cosines * cosines),
+        })
+    }
+
+    /// Keep the loop closure of the last [`Self::try_chord`].
+    pub fn keep_chord(&mut self) {
+        let Some((w, w_pos, isotropic)) = self.tried.take() else {
+            return;
+        };
+        self.factors.admit(w, w_pos, isotropic);
+        match &mut self.factors {
+            Factors::Shared { both, .. } => both.keep_edge(),
+            Factors::Split { heads, .. } => heads.keep_edge(),
+        }
+    }
+
+    /// Take back the loop closure of the last [`Self::try_chord`].
+    pub fn undo_chord(&mut self) {
+        if self.tried.take().is_none() {
+            return;
+        }
+        match &mut self.factors {
+            Factors::Shared { both, .. } => both.undo_edge(),
+            Factors::Split { heads, .. } => heads.undo_edge(),
+        }
+    }
+
     /// Apply the pending operations (in order).
     pub fn sync(&mut self, graph: &PoseGraph) {
+        self.apply_pending(graph);
+        // A read within a deferral (the estimator's replays read nothing) builds the factors
+        // then rather than reading unbuilt ones.
+        self.factors.rebuild(graph);
+    }
+
+    /// Apply the pending operations (in order), deferred ones to the rows only.
+    fn apply_pending(&mut self, graph: &PoseGraph) {
         let pending = std::mem::take(&mut self.pending);
         for &op in &pending {
             match op {
@@ -332,9 +420,6 @@ impl Estimate {
         }
         self.pending = pending;
         self.pending.clear();
-        // A read within a deferral (the estimator's replays read nothing) builds the factors
-        // then rather than reading unbuilt ones.
-        self.factors.rebuild(graph);
     }
 
     /// End of a step: renewals start or complete. A renewal of the position factor (or of

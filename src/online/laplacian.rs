@@ -48,7 +48,7 @@
 //! every step.
 
 use super::renewal::{Beside, Due, Worker};
-use crate::estimate::incremental::{SqrtInfo, fill_reducing_order};
+use crate::estimate::incremental::{Leftover, SqrtInfo, fill_reducing_order};
 use crate::graph::UnionFind;
 
 /// Renew the order when R's nonzeros per row exceed this multiple of the last renewal's.
@@ -259,6 +259,40 @@ impl<const K: usize> Laplacian<K> {
                 }
             }
         }
+    }
+
+    /// Add edge a → b like [`Self::add_edge`], tentatively: its row is rotated in and the
+    /// [`Leftover`] returned, to be kept ([`Self::keep_edge`]) or taken back
+    /// ([`Self::undo_edge`]) before any other change. `None` (nothing done) unless the factor is
+    /// live and a and b are already joined with their component anchored: a loop closure.
+    pub fn try_edge(&mut self, a: usize, b: usize, w: f64, y: [f64; K]) -> Option<Leftover<K>> {
+        let root = self.components.find(a);
+        if self.deferred || root != self.components.find(b) || self.prior[self.anchor[root]] == 0.0
+        {
+            return None;
+        }
+        self.rows.ends.push((a as u32, b as u32));
+        self.rows.sqrt_w.push(w.sqrt());
+        self.rows.y.push(y);
+        let e = self.rows.ends.len() - 1;
+        Some(self.factor.try_row(&self.rows.entries(e), self.rows.rhs(e)))
+    }
+
+    /// Keep the edge of the last [`Self::try_edge`].
+    pub fn keep_edge(&mut self) {
+        self.factor.keep_row();
+        let e = self.rows.ends.len() - 1;
+        self.last_edge = Some(e);
+        let (a, b) = self.rows.ends[e];
+        self.send(Msg::Edge(a, b, self.rows.sqrt_w[e], self.rows.y[e]));
+    }
+
+    /// Take back the edge of the last [`Self::try_edge`]: the system as before it.
+    pub fn undo_edge(&mut self) {
+        self.factor.undo_row();
+        self.rows.ends.pop();
+        self.rows.sqrt_w.pop();
+        self.rows.y.pop();
     }
 
     /// Set the measurement of edge e (only its right-hand side moves).
