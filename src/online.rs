@@ -118,7 +118,9 @@
 //! order on a worker thread, which is sent every later change and applies it itself; the new
 //! factor is collected once the live factor has done as much work (entries of the factor
 //! visited, counted) as the builder is expected to need, and swapped in (`online/renewal.rs`),
-//! so no step replays or rebuilds anything, and results do not depend on the threads' timing.
+//! so no step replays a factor, and results do not depend on the threads' timing. The one
+//! rebuild a step may do is P_UU's, when the screening returns to it from predictions with a
+//! long backlog (module `predict`).
 
 use serde::Serialize;
 use smallvec::SmallVec;
