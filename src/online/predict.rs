@@ -25,8 +25,10 @@
 //! ambiguous, so its chord is in `R` with a guessed wrap; the factors are deferred within a
 //! replay; or the new edge would split a shared factor), the second screening, `finish`.
 //! The success bound takes the backlog's conditional deviations as they were when determined.
-//! On city10000 in robot order this took the steps from 1.43–1.56 s to 1.11 s and the worst
-//! step from 5.4–7.2 ms to 1.0–3.6 ms (no P_UU renewal is waited for when P_UU does not grow).
+//! On city10000 in robot order, the newest pose read after every step, this took the steps
+//! from 1.50–1.54 s to 1.10–1.20 s and the worst step from 4.1–5.6 ms to 1.3–2.0 ms (no P_UU
+//! renewal is waited for when P_UU does not grow; measured before the estimate's renewals were
+//! collected later, README "Measured on 2026-12-03").
 
 use std::f64::consts::TAU;
 
