@@ -71,7 +71,7 @@ pub(crate) const MIN_DELAY: u64 = 32;
 /// 50 of its 5 453 steps, up to 2.4 ms). 96 rather than 64 since the screening takes its
 /// moments from this factor (module `online::predict`): with no P_UU solve between rotations
 /// the live factor does this work sooner, and at 64 the collections waited (the 100 000-pose
-/// world's worst step 158–173 ms in 35–38 waits, against 29 ms in 5 at 96; M3500's over 2 ms
+/// world's worst step 158–173 ms in 35–38 waits, against 29–92 ms in 5 at 96; M3500's over 2 ms
 /// in 6 of 14 runs, against 1 of 12), at a cost of 5–20 % in p99 and stream time.
 const WORK_PER_NONZERO: f64 = 96.0;
 
