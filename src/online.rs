@@ -984,6 +984,13 @@ impl OnlineEstimator {
         self.advance_reorder();
     }
 
+    /// `Σ ±k_e` over a cycle's path (every term but the chord, term 0) at the current wraps.
+    fn path_wraps(&self, cycle: &Cycle) -> i64 {
+        cycle.terms[1..].iter().fold(0i64, |acc, t| {
+            acc.saturating_add(i64::from(t.sign).saturating_mul(self.wrap[t.edge as usize]))
+        })
+    }
+
     /// The current best γ of cycle i: its determined value, or the rounded conditional mean
     /// (clamped to its candidates) of an ambiguous one.
     fn best_gamma(&self, i: usize) -> i64 {
@@ -1012,9 +1019,7 @@ impl OnlineEstimator {
         let mut changed = Vec::new();
         while let Some(c) = work.pop_first() {
             let cyc = &self.cycles[c];
-            let rest = cyc.terms[1..].iter().fold(0i64, |acc, t| {
-                acc.saturating_add(i64::from(t.sign).saturating_mul(self.wrap[t.edge as usize]))
-            });
+            let rest = self.path_wraps(cyc);
             let k = i64::from(cyc.terms[0].sign).saturating_mul(self.gamma[c].saturating_sub(rest));
             let ch = cyc.chord() as usize;
             if self.wrap[ch] != k || c + 1 == self.gamma.len() {
@@ -1186,6 +1191,13 @@ impl OnlineEstimator {
         self.worker.retire("so2lin-reorder", snapshot);
         // The builder's own work (its build and the changes it applied).
         self.rebuild_work_per_row = fresh.take_work() as f64 / fresh.len().max(1) as f64;
+        self.install_conditioner(fresh);
+    }
+
+    /// Swap in a P_UU factor rebuilt in a fill-reducing order (a renewal's, or the catch-up of
+    /// module `predict`): the old one is freed on the worker, and the fill the next renewal is
+    /// measured against is this one's.
+    fn install_conditioner(&mut self, fresh: Conditioner) {
         let old = std::mem::replace(&mut self.screener.cond, fresh);
         self.worker.retire("so2lin-reorder", old);
         let rows = self.screener.cond.len().max(1);

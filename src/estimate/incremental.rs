@@ -88,6 +88,8 @@ struct Undo<const K: usize> {
     work: u64,
     gains: Vec<(u32, f64)>,
     gains_valid: bool,
+    /// A tried row is pending (neither kept nor undone).
+    active: bool,
 }
 
 /// What rotating a row `aᵀx = β` into R leaves ([`SqrtInfo::try_row`]): the part of each
@@ -192,6 +194,7 @@ impl<const K: usize> SqrtInfo<K> {
         undo.work = self.work;
         undo.gains.clone_from(&self.gains);
         undo.gains_valid = self.gains_valid;
+        undo.active = true;
         self.undo = Some(undo);
         self.load(entries);
         let (residual, cosines) = self.rotate_recording(beta);
@@ -203,13 +206,15 @@ impl<const K: usize> SqrtInfo<K> {
         if let Some(u) = &mut self.undo {
             u.rows.clear();
             u.entries.clear();
+            u.active = false;
         }
     }
 
     /// Take back the row of the last [`Self::try_row`]: R, d, the gains and the work count
     /// exactly as before it (bit for bit; the rows it filled get their old entries back).
+    /// Nothing when no tried row is pending (kept, or already taken back).
     pub fn undo_row(&mut self) {
-        let Some(mut u) = self.undo.take() else {
+        let Some(mut u) = self.undo.take_if(|u| u.active) else {
             return;
         };
         for &(k, start, len, diag, d) in u.rows.iter().rev() {
@@ -227,6 +232,7 @@ impl<const K: usize> SqrtInfo<K> {
         self.gains_valid = u.gains_valid;
         u.rows.clear();
         u.entries.clear();
+        u.active = false;
         self.undo = Some(u);
     }
 
@@ -1134,6 +1140,12 @@ mod tests {
         let _ = f.try_row(&row, beta);
         f.keep_row();
         assert_eq!((&f.rows, &f.diag, &f.d), (&g.rows, &g.diag, &g.d));
+        // A kept row is not taken back by a stray undo.
+        f.undo_row();
+        assert_eq!(
+            (&f.rows, &f.diag, &f.d, f.nnz),
+            (&g.rows, &g.diag, &g.d, g.nnz)
+        );
         assert!(f.shift_last_row([1.0, 0.0]) && g.shift_last_row([1.0, 0.0]));
         assert_eq!(f.d, g.d);
     }

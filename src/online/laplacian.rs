@@ -72,7 +72,8 @@ pub(crate) const MIN_DELAY: u64 = 32;
 /// moments from this factor (module `online::predict`): with no P_UU solve between rotations
 /// the live factor does this work sooner, and at 64 the collections waited (the 100 000-pose
 /// world's worst step 158–173 ms in 35–38 waits, against 29–92 ms in 5 at 96; M3500's over 2 ms
-/// in 6 of 14 runs, against 1 of 12), at a cost of 5–20 % in p99 and stream time.
+/// in 6 of 14 runs, against 1 of 12; `so2lin stream FILE --json`, robot order, the newest pose
+/// read after every step), at a cost of 5–20 % in p99 and stream time.
 const WORK_PER_NONZERO: f64 = 96.0;
 
 /// A change to the system, sent to a renewal's builder so that it keeps its copy up to date
@@ -223,10 +224,7 @@ impl<const K: usize> Laplacian<K> {
 
     /// A new edge from node a to b with weight w and measurement y.
     pub fn add_edge(&mut self, a: usize, b: usize, w: f64, y: [f64; K]) {
-        let e = self.rows.ends.len();
-        self.rows.ends.push((a as u32, b as u32));
-        self.rows.sqrt_w.push(w.sqrt());
-        self.rows.y.push(y);
+        let e = self.push_row(a, b, w, y);
         let (ra, rb) = (self.components.find(a), self.components.find(b));
         let (aa, ab) = (self.anchor[ra], self.anchor[rb]);
         let (winner, loser) = (aa.min(ab), aa.max(ab));
@@ -275,11 +273,16 @@ impl<const K: usize> Laplacian<K> {
         {
             return None;
         }
+        let e = self.push_row(a, b, w, y);
+        Some(self.factor.try_row(&self.rows.entries(e), self.rows.rhs(e)))
+    }
+
+    /// Record edge a → b's row (weight w, measurement y) among the rows; its index.
+    fn push_row(&mut self, a: usize, b: usize, w: f64, y: [f64; K]) -> usize {
         self.rows.ends.push((a as u32, b as u32));
         self.rows.sqrt_w.push(w.sqrt());
         self.rows.y.push(y);
-        let e = self.rows.ends.len() - 1;
-        Some(self.factor.try_row(&self.rows.entries(e), self.rows.rhs(e)))
+        self.rows.ends.len() - 1
     }
 
     /// Keep the edge of the last [`Self::try_edge`].

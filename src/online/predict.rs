@@ -55,9 +55,7 @@ impl OnlineEstimator {
             return None;
         }
         let p = self.estimate.try_chord(&self.graph, edge, a, b)?;
-        let rest = cycle.terms[1..].iter().fold(0i64, |acc, t| {
-            acc.saturating_add(i64::from(t.sign).saturating_mul(self.wrap[t.edge as usize]))
-        });
+        let rest = self.path_wraps(cycle);
         self.predicted += 1;
         let sign = f64::from(cycle.terms[0].sign);
         Some(Moments {
@@ -77,11 +75,7 @@ impl OnlineEstimator {
         if let Some(fresh) = fresh {
             // A renewal in progress describes the replaced factor.
             self.renewal = None;
-            let old = std::mem::replace(&mut self.screener.cond, fresh);
-            self.worker.retire("so2lin-reorder", old);
-            let rows = self.screener.cond.len().max(1);
-            self.fill_after_reorder = self.screener.cond.factor_nnz() as f64 / rows as f64;
-            self.counters.reorders += 1;
+            self.install_conditioner(fresh);
         }
     }
 }
