@@ -496,6 +496,8 @@ fn quarantine_run(
             ..ScreeningConfig::default()
         },
         quarantine: true,
+        // Only the decisions are read: no estimate is kept through the stream.
+        estimate_every_step: false,
         ..crate::online::OnlineConfig::default()
     };
     let numerical = |e: crate::online::OnlineError| SolveError::Quarantine(e.to_string());

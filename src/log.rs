@@ -189,10 +189,17 @@ impl LogContents {
             None => false,
             Some(v) => v.parse().map_err(|_| parse_err("evict"))?,
         };
+        // Logs written before the setting existed lack the key: they were recorded reading
+        // the newest pose every step (the recorder does).
+        let estimate_every_step = match self.metadata.get("estimate_every_step") {
+            None => true,
+            Some(v) => v.parse().map_err(|_| parse_err("estimate_every_step"))?,
+        };
         Ok(OnlineConfig {
             screening,
             quarantine,
             evict,
+            estimate_every_step,
         })
     }
 }

@@ -31,6 +31,7 @@ fn configs_round_trip_through_json() {
         screening: screening(),
         quarantine: false,
         evict: true,
+        estimate_every_step: false,
     });
     round_trip(BatchConfig {
         basis: BasisKind::Mcb,

@@ -142,6 +142,7 @@ fn genuine_edges_quarantined_by_chance_are_readmitted() {
         .per_cycle(),
         quarantine: true,
         evict: false,
+        ..OnlineConfig::default()
     };
     // Step by step, with the number of cycles closed when each edge was quarantined.
     let mut est = OnlineEstimator::new(config).unwrap();

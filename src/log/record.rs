@@ -237,6 +237,10 @@ impl Recorder {
             ("max_hypotheses", s.max_hypotheses.to_string()),
             ("quarantine", config.quarantine.to_string()),
             ("evict", config.evict.to_string()),
+            (
+                "estimate_every_step",
+                config.estimate_every_step.to_string(),
+            ),
         ]
         .into_iter()
         .map(|(k, v)| (k.to_owned(), v))

@@ -361,7 +361,6 @@ impl OnlineEstimator {
         fresh.warm = Some(warm);
         fresh.replaying = true;
         fresh.reuse_paths = self.reuse_paths;
-        fresh.predicts = self.predicts;
         fresh.hints = (self.reuse_paths).then(|| replay::Hints::new(self.paths.clone()));
         // Nobody reads the estimate within the replay: its factors are built once at its end
         // instead of being kept through every step.

@@ -19,7 +19,12 @@
 //! when t is determined (its right-hand side moved by `−2π k_e √w` through the rotations'
 //! gains), and taken back otherwise, exactly ([`crate::estimate`]'s tentative rows).
 //!
-//! The P_UU factor is then not needed for the new cycle: the cycles determined this way wait
+//! A caller that does not read the estimate after every step says so
+//! ([`OnlineConfig::estimate_every_step`](super::OnlineConfig::estimate_every_step) off): the
+//! factor is then not kept through the steps and every cycle goes through P_UU, which alone
+//! is cheaper than the rotations (M3500 screened in 0.027 s of steps against 0.092 s).
+//!
+//! With the prediction, the P_UU factor is not needed for the new cycle: the cycles determined this way wait
 //! in a backlog, appended to P_UU (or P_UU rebuilt in a fill-reducing order, when they are
 //! many) before anything uses it: a cycle that must be screened by P_UU (some cycle is
 //! ambiguous, so its chord is in `R` with a guessed wrap; the factors are deferred within a
@@ -180,9 +185,12 @@ mod tests {
         }
         let mut switched = false;
         for (name, edges) in worlds {
-            let run = |predicts: bool| {
-                let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
-                est.predicts = predicts;
+            let run = |estimate_every_step: bool| {
+                let mut est = OnlineEstimator::new(OnlineConfig {
+                    estimate_every_step,
+                    ..OnlineConfig::default()
+                })
+                .unwrap();
                 let mut steps = Vec::new();
                 for &edge in &edges {
                     steps.push(est.add_edge(edge).unwrap());

@@ -501,6 +501,9 @@ fn main() -> ExitCode {
             let config = OnlineConfig {
                 screening: screening.config(),
                 quarantine: !no_quarantine,
+                // The recorder reads the newest pose every step.
+                estimate_every_step: !matches!(estimate, stream::EstimateQuery::None)
+                    || log.is_some(),
                 ..OnlineConfig::default()
             };
             if !step_time_ok {

@@ -24,7 +24,9 @@ pub enum EdgeOrder {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum EstimateQuery {
-    /// Nothing.
+    /// Nothing: the screening alone (the estimate is not kept up to date through the stream,
+    /// and every cycle is conditioned through P_UU; with --log the recorder reads the newest
+    /// pose, so it is).
     None,
     /// The newest node's pose.
     Newest,
