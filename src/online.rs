@@ -312,6 +312,10 @@ pub struct Counters {
     pub estimate_renewals: usize,
     /// Steps that had to wait for a renewal's builder thread (0 when it keeps up).
     pub renewal_waits: usize,
+    /// Times every position row was re-linearised at the current headings because they had
+    /// moved by more than the bound on the fast answers' heading lag (module `online::estimate`,
+    /// 0.05 rad) since the rows were.
+    pub estimate_relinearisations: usize,
 }
 
 /// The noise scales the quarantine uses ([`OnlineEstimator::noise_scales`]), estimated from
@@ -1226,6 +1230,7 @@ impl OnlineEstimator {
         let (renewals, waits) = self.estimate.renewals();
         self.counters.estimate_renewals = renewals;
         self.counters.renewal_waits = waits + self.cond_waits;
+        self.counters.estimate_relinearisations = self.estimate.relinearisations;
     }
 
     /// Counters of the run so far.

@@ -101,6 +101,27 @@ pub(crate) struct Leftover<const K: usize> {
     pub cosines: f64,
 }
 
+impl<const K: usize> Leftover<K> {
+    /// How far the row moved its own prediction `aᵀx̂`, per right-hand side, over `scale`:
+    /// `(β − aᵀx̂)(1 − Πc²)/scale` (`1 − Πc² = ‖R⁻ᵀa‖²/(1 + ‖R⁻ᵀa‖²)`, the gain of the
+    /// prediction toward the row). For a Laplacian edge row `√w (x_b − x_a) = √w y` with
+    /// `scale = √w`, the change of `x̂_b − x̂_a`. Zero when the row's last rotation met an
+    /// empty row (`Πc = 0`: a new variable takes the row, nothing else moves).
+    pub fn moved_prediction(&self, scale: f64) -> [f64; K] {
+        if self.cosines == 0.0 {
+            return [0.0; K];
+        }
+        let gain = self.gain();
+        self.residual.map(|r| (r / self.cosines) * gain / scale)
+    }
+
+    /// `1 − Πc²`: how much of a later shift `Δβ` of the row's right-hand side moves its own
+    /// prediction (`aᵀ(RᵀR)⁻¹a` with the row in).
+    pub fn gain(&self) -> f64 {
+        1.0 - self.cosines * self.cosines
+    }
+}
+
 impl<const K: usize> Default for SqrtInfo<K> {
     fn default() -> Self {
         Self {
@@ -174,11 +195,12 @@ impl<const K: usize> SqrtInfo<K> {
         self.w.sort_unstable_by_key(|&(p, _)| p);
     }
 
-    /// Add the row `Σ a_v x_v = β` (Givens rotations).
-    pub fn add_row(&mut self, entries: &[(usize, f64)], beta: [f64; K]) {
+    /// Add the row `Σ a_v x_v = β` (Givens rotations): what the rotations leave.
+    pub fn add_row(&mut self, entries: &[(usize, f64)], beta: [f64; K]) -> Leftover<K> {
         self.load(entries);
         // Cannot fail for an update.
-        let _ = self.rotate(beta, false);
+        let (residual, cosines) = self.rotate(beta, false).unwrap_or(([0.0; K], 1.0));
+        Leftover { residual, cosines }
     }
 
     /// Add the row `Σ a_v x_v = β` like [`Self::add_row`], keeping what it overwrites until

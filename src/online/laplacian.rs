@@ -159,6 +159,15 @@ pub(crate) struct Laplacian<const K: usize> {
     last_edge: Option<usize>,
     /// Changes go to the rows only, the factor is built at [`Self::rebuild`] (a replay).
     deferred: bool,
+    /// A bound on how far any node's anchored value has moved, per right-hand side, since
+    /// [`Self::set_moved`] last set it ([`Self::moved`]).
+    moved: [f64; K],
+    /// The [`Leftover`] of the row tried last ([`Self::try_edge`]).
+    tried: Option<Leftover<K>>,
+    /// The last row added ([`Self::last_edge`]): how far it has moved its own difference
+    /// `x_b − x_a` (signed, per right-hand side) and its [`Leftover::gain`], so that a later
+    /// shift of its right-hand side (the wrap a kept loop closure takes) counts net.
+    last_moved: ([f64; K], f64),
     /// Renewals completed.
     pub renewals: usize,
     /// Steps that waited for a renewal's builder.
@@ -182,6 +191,9 @@ impl<const K: usize> Default for Laplacian<K> {
             steps: 0,
             last_edge: None,
             deferred: false,
+            moved: [0.0; K],
+            tried: None,
+            last_moved: ([0.0; K], 0.0),
             renewals: 0,
             waits: 0,
         }
@@ -239,7 +251,8 @@ impl<const K: usize> Laplacian<K> {
             }
         }
         if live {
-            self.factor.add_row(&self.rows.entries(e), self.rows.rhs(e));
+            let left = self.factor.add_row(&self.rows.entries(e), self.rows.rhs(e));
+            self.note_row(left, e);
             self.last_edge = Some(e);
             self.send(Msg::Edge(a as u32, b as u32, self.rows.sqrt_w[e], y));
         }
@@ -252,6 +265,9 @@ impl<const K: usize> Laplacian<K> {
                 self.prior[loser] = 0.0;
             }
             if p != 0.0 && live {
+                // The joined component's values are now relative to another anchor. (The joining
+                // row's own movement covers that shift, measured; not relied upon.)
+                self.moved = [f64::INFINITY; K];
                 self.last_edge = None;
                 self.send(Msg::Unprior((loser, p)));
                 if self.factor.remove_row(&[(loser, p)], [0.0; K]).is_err() {
@@ -274,7 +290,9 @@ impl<const K: usize> Laplacian<K> {
             return None;
         }
         let e = self.push_row(a, b, w, y);
-        Some(self.factor.try_row(&self.rows.entries(e), self.rows.rhs(e)))
+        let left = self.factor.try_row(&self.rows.entries(e), self.rows.rhs(e));
+        self.tried = Some(left);
+        Some(left)
     }
 
     /// Record edge a → b's row (weight w, measurement y) among the rows; its index.
@@ -289,6 +307,9 @@ impl<const K: usize> Laplacian<K> {
     pub fn keep_edge(&mut self) {
         self.factor.keep_row();
         let e = self.rows.ends.len() - 1;
+        if let Some(left) = self.tried.take() {
+            self.note_row(left, e);
+        }
         self.last_edge = Some(e);
         let (a, b) = self.rows.ends[e];
         self.send(Msg::Edge(a, b, self.rows.sqrt_w[e], self.rows.y[e]));
@@ -296,6 +317,7 @@ impl<const K: usize> Laplacian<K> {
 
     /// Take back the edge of the last [`Self::try_edge`]: the system as before it.
     pub fn undo_edge(&mut self) {
+        self.tried = None;
         self.factor.undo_row();
         self.rows.ends.pop();
         self.rows.sqrt_w.pop();
@@ -314,10 +336,50 @@ impl<const K: usize> Laplacian<K> {
         }
         let s = self.rows.sqrt_w[e];
         let shift: [f64; K] = std::array::from_fn(|q| s * (y[q] - old[q]));
-        if self.last_edge != Some(e) || !self.factor.shift_last_row(shift) {
+        if self.last_edge == Some(e) && self.factor.shift_last_row(shift) {
+            // The last row's difference moves by gain·Δy: counted net of what the row moved.
+            let (signed, gain) = self.last_moved;
+            for q in 0..K {
+                let now = signed[q] + gain * (y[q] - old[q]);
+                self.moved[q] += now.abs() - signed[q].abs();
+                self.last_moved.0[q] = now;
+            }
+        } else {
+            // Its difference moves by w·Var·Δy, w·Var < 1 with its row in.
             self.factor.shift_rhs(&self.rows.entries(e), shift);
+            for q in 0..K {
+                self.moved[q] += (y[q] - old[q]).abs();
+            }
         }
         self.send(Msg::SetY(e as u32, y));
+    }
+
+    /// Add the change of edge e's difference `x_b − x_a` that its new row made to the bound
+    /// [`Self::moved`]: the change of the solution caused by one row (or one moved
+    /// measurement) is a potential driven between a and b (harmonic elsewhere, each
+    /// component held at its anchor), so by the maximum principle no node's anchored value
+    /// moves by more than `|Δ(x_b − x_a)|`.
+    fn note_row(&mut self, left: Leftover<K>, e: usize) {
+        let change = left.moved_prediction(self.rows.sqrt_w[e]);
+        for (m, c) in self.moved.iter_mut().zip(change) {
+            *m += c.abs();
+        }
+        self.last_moved = (change, left.gain());
+    }
+
+    /// A bound on how far any node's anchored value (right-hand side q) has moved since
+    /// [`Self::set_moved`] (infinite after two components joined).
+    pub fn moved(&self, q: usize) -> f64 {
+        self.moved[q]
+    }
+
+    /// Set the bound [`Self::moved`] of right-hand side q (0 when the owner re-linearised
+    /// with the values of now).
+    pub fn set_moved(&mut self, q: usize, bound: f64) {
+        self.moved[q] = bound;
+        // The last row's movement is in the bound as set: a later shift of its right-hand
+        // side adds its own (no more than the net, by the triangle inequality).
+        self.last_moved.0[q] = 0.0;
     }
 
     /// Edge e's measurement.
@@ -344,6 +406,7 @@ impl<const K: usize> Laplacian<K> {
             nodes_at_renewal: self.nodes_at_renewal,
             steps: self.steps,
             deferred: self.deferred,
+            moved: columns.map(|q| self.moved[q]),
             ..Laplacian::default()
         }
     }
@@ -449,6 +512,9 @@ impl<const K: usize> Laplacian<K> {
     /// Rewrite the rows' measurements by `relinearise` and the factor's right-hand sides with
     /// them (one pass over the rows; the factor's order and values stay).
     pub fn relinearise(&mut self, relinearise: Relinearise<K>) {
+        // A renewal in progress would bring back its snapshot's measurements: abandoned (its
+        // builder stops; the next one starts from these).
+        self.renewal = None;
         relinearise(&mut self.rows.y);
         reset_rhs(&mut self.factor, &self.rows);
         self.last_edge = None;
@@ -526,7 +592,9 @@ impl<const K: usize> Laplacian<K> {
         let apply = |(f, rows): &mut (SqrtInfo<K>, Rows<K>), msg: Msg<K>| {
             match msg {
                 Msg::Variable(v) => f.push_variable(v as usize),
-                Msg::Prior(p) => f.add_row(&[p], [0.0; K]),
+                Msg::Prior(p) => {
+                    f.add_row(&[p], [0.0; K]);
+                }
                 Msg::Unprior(p) => f.remove_row(&[p], [0.0; K]).ok()?,
                 Msg::Edge(a, b, s, y) => {
                     rows.ends.push((a, b));
@@ -660,5 +728,99 @@ mod tests {
         let x = l.all(0);
         let last = x.len() - 1;
         assert!((x[last] - 0.1 * last as f64).abs() < 1e-9, "{}", x[last]);
+    }
+
+    /// [`Laplacian::moved`] bounds how far every node's anchored value has moved since it was
+    /// set to 0: through new chains, loop closures added or tried and kept or undone, moved
+    /// measurements of the last row (net, through its gains) and of older rows, and components
+    /// that join. And the bound is not vacuous: it is reached (to rounding).
+    #[test]
+    fn the_moved_bound_bounds_every_nodes_movement() {
+        let mut state = 0x2545_f491_4f6c_dd1d_u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut l = Laplacian::<2>::default();
+        let mut base = Vec::new();
+        let mut worst_ratio: f64 = 0.0;
+        let mut largest: f64 = 0.0;
+        l.add_node();
+        for step in 0..1500 {
+            let n = l.len();
+            let r = next();
+            if r < 0.45 || n < 4 {
+                // A new node on the chain (or, now and then, the start of a second chain).
+                let v = l.add_node();
+                let from = if step % 400 == 399 { None } else { Some(v - 1) };
+                if let Some(u) = from {
+                    l.add_edge(u, v, 1.0 + next(), [next() - 0.5, next()]);
+                }
+            } else if r < 0.75 {
+                // A loop closure between two older nodes of the first chain, its measurement
+                // off by up to half a unit.
+                let (a, b) = ((next() * n as f64) as usize, n - 1);
+                if a == b {
+                    continue;
+                }
+                let y = [next() - 0.5, next() * 3.0];
+                // Between two components: they join (the bound is infinite).
+                let join = l.components.find(a) != l.components.find(b);
+                if join || next() < 0.5 {
+                    l.add_edge(a, b, 4.0 * next() + 0.5, y);
+                } else if l.try_edge(a, b, 2.0, y).is_some() {
+                    if next() < 0.7 {
+                        l.keep_edge();
+                    } else {
+                        l.undo_edge();
+                    }
+                }
+            } else if r < 0.9 && l.edge_count() > 0 {
+                // A measurement moved: the last row's (a wrap taken) or an older one's.
+                let e = if next() < 0.5 {
+                    l.edge_count() - 1
+                } else {
+                    (next() * l.edge_count() as f64) as usize
+                };
+                let [y0, y1] = l.y(e);
+                let jump = if next() < 0.2 {
+                    std::f64::consts::TAU
+                } else {
+                    0.2
+                };
+                l.set_y(e, [y0 + jump * (next() - 0.5), y1 + next() - 0.5]);
+            } else {
+                // Settle: the owner re-linearised with the values of now.
+                base = (0..2).map(|q| l.all(q)).collect();
+                l.set_moved(0, 0.0);
+                l.set_moved(1, 0.0);
+                continue;
+            }
+            if base.is_empty() {
+                continue;
+            }
+            for (q, before) in base.iter().enumerate() {
+                let now = l.all(q);
+                let moved = (before.iter().zip(&now))
+                    .map(|(x, y)| (x - y).abs())
+                    .fold(0.0, f64::max);
+                let bound = l.moved(q);
+                assert!(
+                    moved <= bound + 1e-9,
+                    "step {step}, rhs {q}: {moved} > {bound}"
+                );
+                if bound.is_finite() && bound > 0.0 {
+                    worst_ratio = worst_ratio.max(moved / bound);
+                }
+                largest = largest.max(moved);
+            }
+        }
+        eprintln!("largest movement {largest}, tightest ratio {worst_ratio}");
+        assert!(
+            largest > 1.0 && worst_ratio > 0.99,
+            "{largest} {worst_ratio}"
+        );
     }
 }

@@ -202,6 +202,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "estimate": args.estimate,
             "estimate_renewals": c.estimate_renewals,
             "renewal_waits": c.renewal_waits,
+            "estimate_relinearisations": c.estimate_relinearisations,
             "steps": c.steps,
             "nodes": est.graph().node_count(),
             "cycles": c.cycles,
@@ -254,14 +255,15 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         );
     }
     println!(
-        "online: {} determined, {} ambiguous, {} inconsistent, {} re-screens, {} factor reorders, {} estimate renewals ({} steps waited for one)",
+        "online: {} determined, {} ambiguous, {} inconsistent, {} re-screens, {} factor reorders, {} estimate renewals ({} steps waited for one), {} re-linearisations of the positions",
         c.determined,
         c.ambiguous,
         c.inconsistent,
         c.rescreens,
         c.reorders,
         c.estimate_renewals,
-        c.renewal_waits
+        c.renewal_waits,
+        c.estimate_relinearisations
     );
     let second = match result.outcome {
         so2lin::screening::SecondOutcome::Complete => "second screening complete",
