@@ -5,7 +5,6 @@ mod common;
 use std::io::{Cursor, Seek, SeekFrom, Write};
 
 use so2lin::graph::Edge;
-use so2lin::io::{InfoOrder, Reader};
 use so2lin::log::{LogOptions, Recorder, read_log, replay};
 use so2lin::online::{OnlineConfig, OnlineEstimator, StepKind};
 use so2lin::sim::{SimConfig, simulate};
@@ -87,11 +86,7 @@ fn datasets_and_simulated_worlds_replay_without_divergence() {
         let Some(path) = common::dataset(name) else {
             return;
         };
-        let edges: Vec<Edge> = Reader::open(&path, InfoOrder::Auto)
-            .unwrap()
-            .edges()
-            .map(|e| e.unwrap())
-            .collect();
+        let edges: Vec<Edge> = common::edges_of(&path);
         assert_replays(name, &edges);
     }
 }

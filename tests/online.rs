@@ -8,7 +8,7 @@ use so2lin::batch::{BatchConfig, screen, screen_spending};
 use so2lin::cycles::BasisKind;
 use so2lin::estimate::OrientationEstimator;
 use so2lin::graph::{Edge, Information, NodeId, Pose2, PoseGraph};
-use so2lin::io::{InfoOrder, ReadOptions, Reader, read_graph};
+use so2lin::io::{ReadOptions, read_graph};
 use so2lin::online::{OnlineConfig, OnlineError, OnlineEstimator};
 use so2lin::screening::ScreeningConfig;
 use so2lin::sim::{SimConfig, simulate};
@@ -97,11 +97,7 @@ fn datasets_stream_to_the_batch_answer() {
         if graph.edge_count() > 25_000 {
             continue;
         }
-        let edges: Vec<Edge> = Reader::open(&path, InfoOrder::Auto)
-            .unwrap()
-            .edges()
-            .map(|e| e.unwrap())
-            .collect();
+        let edges: Vec<Edge> = common::edges_of(&path);
         assert_eq!(
             edges.as_slice(),
             graph.edges(),

@@ -348,11 +348,7 @@ fn big_heading_corrections_re_linearise_the_positions() {
     let Some(path) = common::dataset("MIT.g2o") else {
         return;
     };
-    let edges: Vec<Edge> = Reader::open(&path, InfoOrder::Auto)
-        .unwrap()
-        .edges()
-        .map(|e| e.unwrap())
-        .collect();
+    let edges: Vec<Edge> = common::edges_of(&path);
     let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
     let (mut sum, mut n) = (0.0, 0);
     for (i, e) in robot_order(&edges).iter().enumerate() {

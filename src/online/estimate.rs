@@ -130,9 +130,9 @@ pub(crate) struct Estimate {
 /// is loose; measured (`so2lin stream FILE --json`, robot order, the newest pose read, against
 /// no such bound): at 1 rad the newest pose's distance to the exact one, sampled every 25
 /// steps, went on MIT from 35 m on average (89 m at worst) to 2.3 m (5.6), on M3500 from
-/// 0.24 m (1.3) to 0.04 m (0.43) at a cost of 0.093 → 0.112 s of steps and p99 176 → 224 µs
-/// (53 re-linearisations), on city10000 from 0.18 m to 0.10 m for 1.30 → 1.35 s (91); at
-/// 0.2 rad M3500 took 0.22 s (242), at 0.05 rad 0.50 s (725).
+/// 0.24 m (1.3) to 0.04 m (0.43) at a cost of 0.095 → 0.104–0.112 s of steps and p99
+/// 183 → 200–206 µs (53 re-linearisations), on city10000 from 0.18 m to 0.10 m for no
+/// measurable time (92); at 0.2 rad M3500 took 0.22 s (242), at 0.05 rad 0.50 s (725).
 pub(crate) const HEADING_LAG: f64 = 1.0;
 
 /// A loop closure's prediction by the headings' factor ([`Estimate::try_chord`]).
@@ -187,8 +187,8 @@ fn relinearise<const K: usize>(
 /// Keep the headings' bound [`Laplacian::moved`] (of `heads`) as the lag of the position rows
 /// across a renewal of the factor holding them: recorded when the renewal starts (`before`
 /// not renewing, now `renewing`), and when it is swapped in (`renewals` grew) the bound is
-/// what the headings moved since that start, the rows' re-linearisation (bounds add up; no
-/// other re-linearisation came in between: it abandons the renewal).
+/// what the headings moved since that start or since a re-linearisation in between (which
+/// sets `at_start` to 0), the rows' latest (bounds add up).
 fn track_lag<const K: usize>(
     heads: &mut Laplacian<K>,
     before: (bool, usize),
@@ -284,13 +284,39 @@ impl Factors {
         match self {
             Factors::Shared { both, .. } => {
                 both.rebuild(None);
-                let headings = both.all(0);
-                both.relinearise(Box::new(relinearise::<3>(headings, graph, edges, 1)));
+                self.relinearise_positions(graph, edges);
             }
             Factors::Split { heads, positions } => {
                 heads.rebuild(None);
                 let headings = heads.all(0);
                 positions.rebuild(Some(Box::new(relinearise::<2>(headings, graph, edges, 0))));
+                heads.set_moved(0, 0.0);
+            }
+        }
+    }
+
+    /// The bound on how far the headings moved since the position rows were linearised
+    /// ([`Laplacian::moved`]).
+    fn headings_moved(&self) -> f64 {
+        match self {
+            Factors::Shared { both, .. } => both.moved(0),
+            Factors::Split { heads, .. } => heads.moved(0),
+        }
+    }
+
+    /// Every position row (of the first `edges`) at the current headings, the factor's order
+    /// and values kept; the headings' bound back to 0.
+    fn relinearise_positions(&mut self, graph: &PoseGraph, edges: usize) {
+        match self {
+            Factors::Shared { both, .. } => {
+                let job = relinearise::<3>(both.all(0), graph, edges, 1);
+                both.relinearise(Box::new(job));
+                both.set_moved(0, 0.0);
+            }
+            Factors::Split { heads, positions } => {
+                let job = relinearise::<2>(heads.all(0), graph, edges, 0);
+                positions.relinearise(Box::new(job));
+                heads.set_moved(0, 0.0);
             }
         }
     }
@@ -470,7 +496,7 @@ impl Estimate {
         let edges = self.factors.position_rows();
         let deferred = self.factors.deferred();
         let at_start = &mut self.moved_at_renewal;
-        let relinearised = match &mut self.factors {
+        match &mut self.factors {
             Factors::Shared { both, .. } => {
                 let before = (both.renewing(), both.renewals);
                 both.after_step(true, |both| {
@@ -478,13 +504,6 @@ impl Estimate {
                     Some(Box::new(relinearise::<3>(both.all(0), graph, edges, 1)))
                 });
                 track_lag(both, before, both.renewing(), both.renewals, at_start);
-                let lag = !deferred && both.moved(0) > HEADING_LAG;
-                if lag {
-                    let job = relinearise::<3>(both.all(0), graph, edges, 1);
-                    both.relinearise(Box::new(job));
-                    both.set_moved(0, 0.0);
-                }
-                lag
             }
             Factors::Split { heads, positions } => {
                 // The thread rotated both factors this step: each one's renewal is due by the
@@ -503,16 +522,14 @@ impl Estimate {
                 });
                 let after = (positions.renewing(), positions.renewals);
                 track_lag(heads, before, after.0, after.1, at_start);
-                let lag = !deferred && heads.moved(0) > HEADING_LAG;
-                if lag {
-                    let job = relinearise::<2>(heads.all(0), graph, edges, 0);
-                    positions.relinearise(Box::new(job));
-                    heads.set_moved(0, 0.0);
-                }
-                lag
             }
-        };
-        self.relinearisations += usize::from(relinearised);
+        }
+        if !deferred && self.factors.headings_moved() > HEADING_LAG {
+            self.factors.relinearise_positions(graph, edges);
+            self.relinearisations += 1;
+            // A renewal in progress takes these rows too: its bound counts from here.
+            self.moved_at_renewal = 0.0;
+        }
     }
 
     /// Orientation of node v (O(1) for the newest).

@@ -89,6 +89,8 @@ pub(crate) enum Msg<const K: usize> {
     Edge(u32, u32, f64, [f64; K]),
     /// Edge e's y is now this.
     SetY(u32, [f64; K]),
+    /// Every edge's y is now this (a re-linearisation: [`Laplacian::relinearise`]).
+    Relinearised(Vec<[f64; K]>),
 }
 
 /// What a renewal's builder returns: its factor and the right-hand sides it holds.
@@ -512,12 +514,13 @@ impl<const K: usize> Laplacian<K> {
     /// Rewrite the rows' measurements by `relinearise` and the factor's right-hand sides with
     /// them (one pass over the rows; the factor's order and values stay).
     pub fn relinearise(&mut self, relinearise: Relinearise<K>) {
-        // A renewal in progress would bring back its snapshot's measurements: abandoned (its
-        // builder stops; the next one starts from these).
-        self.renewal = None;
         relinearise(&mut self.rows.y);
         reset_rhs(&mut self.factor, &self.rows);
         self.last_edge = None;
+        // A renewal in progress takes them too (or it would bring back its snapshot's).
+        if self.renewal.is_some() {
+            self.send(Msg::Relinearised(self.rows.y.clone()));
+        }
     }
 
     /// Take the live factor's work since the last call into this system's count, and return
@@ -602,6 +605,13 @@ impl<const K: usize> Laplacian<K> {
                     rows.y.push(y);
                     let e = rows.ends.len() - 1;
                     f.add_row(&rows.entries(e), rows.rhs(e));
+                }
+                Msg::Relinearised(y) => {
+                    if y.len() != rows.y.len() {
+                        return None;
+                    }
+                    rows.y = y;
+                    reset_rhs(f, rows);
                 }
                 Msg::SetY(e, y) => {
                     let e = e as usize;

@@ -81,6 +81,15 @@ pub fn dataset(name: &str) -> Option<PathBuf> {
     None
 }
 
+/// Every edge of a graph file, in the file's order (test data: a bad file fails the test).
+pub fn edges_of(path: &std::path::Path) -> Vec<so2lin::graph::Edge> {
+    so2lin::io::Reader::open(path, so2lin::io::InfoOrder::Auto)
+        .unwrap()
+        .edges()
+        .map(|e| e.unwrap())
+        .collect()
+}
+
 /// The names of the files in the datasets folder (its `.md` notes left out), sorted; `None`
 /// (skip) as for [`datasets_dir`].
 pub fn dataset_names() -> Option<(PathBuf, Vec<String>)> {
