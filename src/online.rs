@@ -313,8 +313,10 @@ pub struct Counters {
     /// Steps that had to wait for a renewal's builder thread (0 when it keeps up).
     pub renewal_waits: usize,
     /// Times every position row was re-linearised at the current headings because they had
-    /// moved by more than the bound on the fast answers' heading lag (module `online::estimate`,
-    /// 0.05 rad) since the rows were.
+    /// moved by more than the bound on the fast answers' heading lag (1 rad; module
+    /// `online::estimate`) since the rows were. Like `estimate_renewals`, it counts the
+    /// estimate's work applied so far, which the next read (or loop closure, while the
+    /// estimate is read every step) brings up to date.
     pub estimate_relinearisations: usize,
 }
 

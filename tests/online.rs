@@ -258,8 +258,10 @@ fn bonferroni_batch_and_spending_online_agree_on_clean_worlds() {
 
 /// Everything a caller can observe.
 fn snapshot(est: &mut OnlineEstimator) -> (String, Vec<f64>, Vec<i64>, Vec<usize>, f64) {
-    let counters = format!("{:?}", est.counters());
+    // The read first: the estimate's counters count the work applied, which a read brings up
+    // to date.
     let theta = est.orientations().unwrap().to_vec();
+    let counters = format!("{:?}", est.counters());
     (
         counters,
         theta,
