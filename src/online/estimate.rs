@@ -122,7 +122,23 @@ pub(crate) struct Estimate {
     /// Re-linearisations of every position row because the headings moved by more than
     /// [`HEADING_LAG`] ([`Self::after_step`]).
     pub relinearisations: usize,
+    /// The positions factor's live work at the last of them ([`RELINEARISE_WORK_PER_NONZERO`]).
+    work_at_relinearisation: u64,
 }
+
+/// Live work (entries of the factor visited by the steps' rotations and solves, counted)
+/// between two re-linearisations for the bound [`HEADING_LAG`], per nonzero of the factor: a
+/// re-linearisation costs a few passes over the factor (a back-substitution, the rows, a
+/// forward solve), so this keeps it to a few percent of the steps' own work however large the
+/// world and however often the bound is passed (a 10 000-pose simulated world passed it 363
+/// times in 16 600 steps). Less [`RELINEARISE_ALLOWANCE`]: a small factor is re-linearised
+/// whenever the bound is passed (MIT's 808 poses do little live work between their large
+/// corrections).
+const RELINEARISE_WORK_PER_NONZERO: f64 = 32.0;
+
+/// Work granted to every re-linearisation ahead (see [`RELINEARISE_WORK_PER_NONZERO`]): about
+/// a millisecond of the live factor's steps.
+const RELINEARISE_ALLOWANCE: u64 = 1 << 20;
 
 /// The bound on how far the headings may have moved since the position rows were
 /// linearised (rad) beyond which every position row is re-linearised at the current headings
@@ -130,9 +146,10 @@ pub(crate) struct Estimate {
 /// is loose; measured (`so2lin stream FILE --json`, robot order, the newest pose read, against
 /// no such bound): at 1 rad the newest pose's distance to the exact one, sampled every 25
 /// steps, went on MIT from 35 m on average (89 m at worst) to 2.3 m (5.6), on M3500 from
-/// 0.24 m (1.3) to 0.04 m (0.43) at a cost of 0.095 → 0.104–0.112 s of steps and p99
-/// 183 → 200–206 µs (53 re-linearisations), on city10000 from 0.18 m to 0.10 m for no
-/// measurable time (92); at 0.2 rad M3500 took 0.22 s (242), at 0.05 rad 0.50 s (725).
+/// 0.24 m (1.3) to 0.05 m (0.43) at a cost of 0.100 → 0.108 s of steps and p99 188 → 207 µs
+/// (49 re-linearisations), on city10000 from 0.18 m to 0.10 m for no measurable time (92);
+/// at 0.2 rad M3500 took 0.22 s (242), at 0.05 rad 0.50 s (725). Re-linearisations are also
+/// spaced by the live work ([`RELINEARISE_WORK_PER_NONZERO`]).
 pub(crate) const HEADING_LAG: f64 = 1.0;
 
 /// A loop closure's prediction by the headings' factor ([`Estimate::try_chord`]).
@@ -301,6 +318,15 @@ impl Factors {
         match self {
             Factors::Shared { both, .. } => both.moved(0),
             Factors::Split { heads, .. } => heads.moved(0),
+        }
+    }
+
+    /// The work and nonzeros of the factor holding the positions
+    /// ([`Laplacian::work_and_nnz`]).
+    fn positions_work(&self) -> (u64, usize) {
+        match self {
+            Factors::Shared { both, .. } => both.work_and_nnz(),
+            Factors::Split { positions, .. } => positions.work_and_nnz(),
         }
     }
 
@@ -524,9 +550,13 @@ impl Estimate {
                 track_lag(heads, before, after.0, after.1, at_start);
             }
         }
-        if !deferred && self.factors.headings_moved() > HEADING_LAG {
+        let (work, nnz) = self.factors.positions_work();
+        let paid = work.saturating_sub(self.work_at_relinearisation) + RELINEARISE_ALLOWANCE
+            >= (RELINEARISE_WORK_PER_NONZERO * nnz as f64) as u64;
+        if !deferred && paid && self.factors.headings_moved() > HEADING_LAG {
             self.factors.relinearise_positions(graph, edges);
             self.relinearisations += 1;
+            self.work_at_relinearisation = work;
             // A renewal in progress takes these rows too: its bound counts from here.
             self.moved_at_renewal = 0.0;
         }

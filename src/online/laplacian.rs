@@ -538,6 +538,12 @@ impl<const K: usize> Laplacian<K> {
         self.work += work;
     }
 
+    /// The live factor's work so far ([`SqrtInfo::take_work`], its own and credited) and its
+    /// nonzeros.
+    pub fn work_and_nnz(&self) -> (u64, usize) {
+        (self.work, self.factor.nnz())
+    }
+
     /// Whether a renewal is in progress.
     pub fn renewing(&self) -> bool {
         self.renewal.is_some()
