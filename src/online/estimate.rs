@@ -53,7 +53,7 @@
 //! into the two factors it stands for (R as it is for the headings; R and d times `√λ` for the
 //! positions), which go on separately as before.
 
-use super::laplacian::Laplacian;
+use super::laplacian::{Laplacian, RenewalEvent};
 use crate::estimate::EstimateError;
 use crate::graph::{Edge, Pose2, PoseGraph};
 
@@ -202,22 +202,22 @@ fn relinearise<const K: usize>(
 }
 
 /// Keep the headings' bound [`Laplacian::moved`] (of `heads`) as the lag of the position rows
-/// across a renewal of the factor holding them: recorded when the renewal starts (`before`
-/// not renewing, now `renewing`), and when it is swapped in (`renewals` grew) the bound is
-/// what the headings moved since that start or since a re-linearisation in between (which
-/// sets `at_start` to 0), the rows' latest (bounds add up).
+/// across a renewal of the factor holding them (`event`): recorded when the renewal starts,
+/// and when it is swapped in the bound is what the headings moved since that start or since a
+/// re-linearisation in between (which sets `at_start` to 0), the rows' latest (bounds add
+/// up).
 fn track_lag<const K: usize>(
     heads: &mut Laplacian<K>,
-    before: (bool, usize),
-    renewing: bool,
-    renewals: usize,
+    event: Option<RenewalEvent>,
     at_start: &mut f64,
 ) {
-    if renewals > before.1 && at_start.is_finite() {
-        heads.set_moved(0, (heads.moved(0) - *at_start).max(0.0));
-    }
-    if renewing && (!before.0 || renewals > before.1) {
-        *at_start = heads.moved(0);
+    match event {
+        Some(RenewalEvent::Started) => *at_start = heads.moved(0),
+        // Infinite at the start (components joined, not re-linearised since): it stays so.
+        Some(RenewalEvent::Collected) if at_start.is_finite() => {
+            heads.set_moved(0, (heads.moved(0) - *at_start).max(0.0));
+        }
+        _ => {}
     }
 }
 
@@ -524,12 +524,11 @@ impl Estimate {
         let at_start = &mut self.moved_at_renewal;
         match &mut self.factors {
             Factors::Shared { both, .. } => {
-                let before = (both.renewing(), both.renewals);
-                both.after_step(true, |both| {
+                let event = both.after_step(true, |both| {
                     // The headings here (one back-substitution); the rows on the builder.
                     Some(Box::new(relinearise::<3>(both.all(0), graph, edges, 1)))
                 });
-                track_lag(both, before, both.renewing(), both.renewals, at_start);
+                track_lag(both, event, at_start);
             }
             Factors::Split { heads, positions } => {
                 // The thread rotated both factors this step: each one's renewal is due by the
@@ -541,19 +540,20 @@ impl Estimate {
                 let free = !positions.renewing();
                 heads.after_step(free, |_| None);
                 let free = !heads.renewing();
-                let before = (positions.renewing(), positions.renewals);
-                positions.after_step(free, |_| {
+                let event = positions.after_step(free, |_| {
                     // The headings here (one back-substitution); the rows on the builder.
                     Some(Box::new(relinearise::<2>(heads.all(0), graph, edges, 0)))
                 });
-                let after = (positions.renewing(), positions.renewals);
-                track_lag(heads, before, after.0, after.1, at_start);
+                track_lag(heads, event, at_start);
             }
+        }
+        if deferred || self.factors.headings_moved() <= HEADING_LAG {
+            return;
         }
         let (work, nnz) = self.factors.positions_work();
         let paid = work.saturating_sub(self.work_at_relinearisation) + RELINEARISE_ALLOWANCE
             >= (RELINEARISE_WORK_PER_NONZERO * nnz as f64) as u64;
-        if !deferred && paid && self.factors.headings_moved() > HEADING_LAG {
+        if paid {
             self.factors.relinearise_positions(graph, edges);
             self.relinearisations += 1;
             self.work_at_relinearisation = work;

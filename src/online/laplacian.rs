@@ -93,6 +93,15 @@ pub(crate) enum Msg<const K: usize> {
     Relinearised(Vec<[f64; K]>),
 }
 
+/// What [`Laplacian::after_step`] did with the factor's renewal.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum RenewalEvent {
+    /// A renewal started: its snapshot takes the rows as re-linearised then.
+    Started,
+    /// A renewal was swapped in: the live rows are now its snapshot's, with every change since.
+    Collected,
+}
+
 /// What a renewal's builder returns: its factor and the right-hand sides it holds.
 type Built<const K: usize> = (SqrtInfo<K>, Vec<[f64; K]>);
 
@@ -559,19 +568,18 @@ impl<const K: usize> Laplacian<K> {
         &mut self,
         may_start: bool,
         relinearise: impl FnOnce(&mut Self) -> Option<Relinearise<K>>,
-    ) {
+    ) -> Option<RenewalEvent> {
         self.steps += 1;
         if self.deferred {
-            return;
+            return None;
         }
         self.step_work();
         if self.renewal.is_some() {
-            self.complete_renewal();
-            return;
+            return self.complete_renewal().then_some(RenewalEvent::Collected);
         }
         let n = self.len();
         if n < MIN_VARIABLES || !may_start {
-            return;
+            return None;
         }
         // Nodes appended since the last renewal form a chain at the end of the order that
         // every loop closure to an older node walks: renew when it is an eighth of the graph,
@@ -581,7 +589,7 @@ impl<const K: usize> Laplacian<K> {
         if per_row <= FILL_RATIO * self.fill_after_renewal.max(1.0)
             && appended <= MIN_VARIABLES.max(n / APPENDED_FRACTION)
         {
-            return;
+            return None;
         }
         let mut rows = self.rows.clone();
         let relinearise = relinearise(self);
@@ -640,34 +648,35 @@ impl<const K: usize> Laplacian<K> {
             work: self.work + (expected_nnz * WORK_PER_NONZERO) as u64,
         };
         let worker = &mut self.worker;
-        let Some(renewal) = Beside::start(worker, "so2lin-renew", build, apply, finish) else {
-            return;
-        };
+        let renewal = Beside::start(worker, "so2lin-renew", build, apply, finish)?;
         self.nodes_at_renewal = n;
         self.renewal = Some((renewal, due));
+        Some(RenewalEvent::Started)
     }
 
     /// At the renewal's step: collect the builder (which has applied every change since its
     /// snapshot) and swap its factor in; the old one is freed on the worker.
-    fn complete_renewal(&mut self) {
+    /// Whether it was swapped in.
+    fn complete_renewal(&mut self) -> bool {
         let Some((_, due)) = &self.renewal else {
-            return;
+            return false;
         };
         if !due.reached(self.steps, self.work) {
-            return;
+            return false;
         }
         let Some((r, _)) = self.renewal.take() else {
-            return;
+            return false;
         };
         let Some((fresh, y)) = r.collect(&mut self.waits) else {
-            return;
+            return false;
         };
         if y.len() != self.rows.y.len() {
-            return;
+            return false;
         }
         self.rows.y = y;
         self.install(fresh);
         self.renewals += 1;
+        true
     }
 }
 
@@ -724,18 +733,19 @@ mod tests {
         while !l.renewing() {
             let v = l.add_node();
             l.add_edge(v - 1, v, 4.0, [0.1]);
-            l.after_step(true, |_| None);
+            let event = l.after_step(true, |_| None);
+            assert_eq!(event.is_some(), l.renewing(), "started: {event:?}");
             assert!(l.len() <= MIN_VARIABLES + 1, "no renewal started");
         }
         for _ in 0..2 * MIN_DELAY {
-            l.after_step(true, |_| None);
+            assert_eq!(l.after_step(true, |_| None), None);
         }
         assert!(
             l.renewing() && l.renewals == 0,
             "collected without the work due"
         );
         l.credit(u64::MAX / 2);
-        l.after_step(true, |_| None);
+        assert_eq!(l.after_step(true, |_| None), Some(RenewalEvent::Collected));
         assert!(
             !l.renewing() && l.renewals == 1,
             "not collected with the work due"
