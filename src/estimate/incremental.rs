@@ -303,14 +303,23 @@ impl<const K: usize> SqrtInfo<K> {
             let (k, wk) = w[head];
             let k = k as usize;
             self.work += (1 + self.rows[k].len() + w.len() - head) as u64;
+            // The copy of row k as it was, for a tried row's undo: also where the in-place
+            // rotation below restores the row from when it meets fill inside (no second copy).
+            let mut recorded = None;
             if self.recording
                 && let Some(u) = &mut self.undo
             {
                 let row = &self.rows[k];
-                let start = u.entries.len() as u32;
+                let start = u.entries.len();
                 u.entries.extend_from_slice(row);
-                u.rows
-                    .push((k as u32, start, row.len() as u32, self.diag[k], self.d[k]));
+                recorded = Some(start..u.entries.len());
+                u.rows.push((
+                    k as u32,
+                    start as u32,
+                    row.len() as u32,
+                    self.diag[k],
+                    self.d[k],
+                ));
             }
             let r = self.diag[k];
             let (c, s, rho) = if downdate {
@@ -342,10 +351,13 @@ impl<const K: usize> SqrtInfo<K> {
                 // position of the row that falls inside row k's (fill inside) is found on the
                 // way: row k is restored from a copy and rebuilt by the merge below. (A copy is
                 // cheaper than checking the patterns first: that check was half of this
-                // function's time.)
+                // function's time.) A tried row's rotation has the copy already, in its undo
+                // record: copying the row twice was a third of the 40 000-pose world's stream.
                 let row = &mut self.rows[k];
-                self.spare_row.clear();
-                self.spare_row.extend_from_slice(row);
+                if recorded.is_none() {
+                    self.spare_row.clear();
+                    self.spare_row.extend_from_slice(row);
+                }
                 let mut j = head + 1;
                 let mut inside = false;
                 for e in row.iter_mut() {
@@ -387,7 +399,13 @@ impl<const K: usize> SqrtInfo<K> {
                     head = 0;
                     continue;
                 }
-                std::mem::swap(row, &mut self.spare_row);
+                match (&recorded, &self.undo) {
+                    (Some(r), Some(u)) => {
+                        row.clear();
+                        row.extend_from_slice(&u.entries[r.clone()]);
+                    }
+                    _ => std::mem::swap(row, &mut self.spare_row),
+                }
                 next.clear();
             }
             let old = std::mem::take(&mut self.rows[k]);
