@@ -2,7 +2,10 @@
 //! `(neighbour, edge id)`, with positive edge weights — the one implementation used by the
 //! incremental basis (a path between the ends of a new chord), the exact MCB (shortest-path
 //! trees from the roots, bounded by a radius) and the spanner of the approximate MCB
-//! (a bounded point-to-point query).
+//! (a bounded point-to-point query) — and its aimed variant, A* ([`Dijkstra::run_toward`]:
+//! nodes settled by distance plus a consistent lower bound on the distance still to go, the
+//! landmarks' of module `landmarks`), which the incremental basis uses for searches that a
+//! plain one would grow across the map.
 //!
 //! Written here rather than taken from petgraph because callers need: a graph that grows
 //! between calls (the online basis), early stops (target settled, radius exceeded), work
@@ -102,6 +105,51 @@ impl Dijkstra {
         target: Option<usize>,
         radius: f64,
     ) -> bool {
+        self.run_settling(adj, w, (src, target), radius, usize::MAX) == Some(true)
+    }
+
+    /// [`run`](Self::run) that gives up (None) once `most` nodes are settled without
+    /// settling `target`; else whether it was settled.
+    pub(crate) fn run_settling(
+        &mut self,
+        adj: &[AdjacencyList],
+        w: &[f64],
+        ends: (usize, Option<usize>),
+        radius: f64,
+        most: usize,
+    ) -> Option<bool> {
+        self.settle(adj, w, ends, radius, most, |_| 0.0)
+    }
+
+    /// The least-weight path from `src` to `dst` when it is at most `radius` long, by A*:
+    /// nodes are settled by `g + bound` (g the distance from `src`, `bound(v)` a consistent
+    /// lower bound on v's distance to `dst`: module `landmarks`), so the search heads for
+    /// `dst` instead of growing a ball around `src`. Returns whether `dst` was settled; then
+    /// [`dist`](Self::dist), [`pred`](Self::pred) and [`path`](Self::path) hold as after
+    /// [`run`](Self::run). With `bound ≡ 0` it is `run`.
+    pub(crate) fn run_toward(
+        &mut self,
+        adj: &[AdjacencyList],
+        w: &[f64],
+        (src, dst): (usize, usize),
+        radius: f64,
+        bound: impl Fn(usize) -> f64,
+    ) -> bool {
+        self.settle(adj, w, (src, Some(dst)), radius, usize::MAX, bound) == Some(true)
+    }
+
+    /// The one search loop: nodes settled by distance plus `bound` (0 for Dijkstra), until
+    /// `target` is settled (Some(true)), every node reachable within `radius` is (Some(false)),
+    /// or `most` nodes are (None).
+    fn settle(
+        &mut self,
+        adj: &[AdjacencyList],
+        w: &[f64],
+        (src, target): (usize, Option<usize>),
+        radius: f64,
+        most: usize,
+        bound: impl Fn(usize) -> f64,
+    ) -> Option<bool> {
         self.grow(adj.len());
         self.generation = self.generation.wrapping_add(1);
         if self.generation == 0 {
@@ -114,20 +162,25 @@ impl Dijkstra {
         self.node[src].stamp = g;
         self.node[src].dist = 0.0;
         let mut seq = 0u32;
-        self.heap.push(Entry::new(0.0, seq, src as u32));
+        self.heap.push(Entry::new(bound(src), seq, src as u32));
         while let Some(Reverse(entry)) = self.heap.pop() {
-            let (d, v) = (entry.distance(), entry.node());
+            let v = entry.node();
             if self.node[v].done == g {
                 continue;
             }
-            if d > radius {
+            // Every path through v is at least this long (the bound is a lower bound).
+            if entry.distance() > radius {
                 break;
+            }
+            if self.order.len() >= most {
+                return None;
             }
             self.node[v].done = g;
             self.order.push(v as u32);
             if target == Some(v) {
-                return true;
+                return Some(true);
             }
+            let d = self.node[v].dist;
             for &(x, e) in &adj[v] {
                 let x = x as usize;
                 let nd = d + w[e as usize];
@@ -139,11 +192,11 @@ impl Dijkstra {
                     // At most two pushes per edge: u32 suffices for any graph of u32 edge
                     // ids but the largest; saturating keeps the order by distance there.
                     seq = seq.saturating_add(1);
-                    self.heap.push(Entry::new(nd, seq, x as u32));
+                    self.heap.push(Entry::new(nd + bound(x), seq, x as u32));
                 }
             }
         }
-        false
+        Some(false)
     }
 
     /// Whether `v` was settled by the last run.
