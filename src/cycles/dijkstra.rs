@@ -2,7 +2,7 @@
 //! `(neighbour, edge id)`, with positive edge weights — the one implementation used by the
 //! incremental basis (a path between the ends of a new chord), the exact MCB (shortest-path
 //! trees from the roots, bounded by a radius) and the spanner of the approximate MCB
-//! (a bounded point-to-point query) — and its aimed variant, A* ([`Dijkstra::run_toward`]:
+//! (a bounded point-to-point query) — and its aimed variant, A* ([`Dijkstra::resume_toward`]:
 //! nodes settled by distance plus a consistent lower bound on the distance still to go, the
 //! landmarks' of module `landmarks`), which the incremental basis uses for searches that a
 //! plain one would grow across the map.
@@ -56,6 +56,10 @@ impl Entry {
     fn node(self) -> usize {
         (self.0 as u32) as usize
     }
+
+    fn seq(self) -> u32 {
+        (self.0 >> 32) as u32
+    }
 }
 
 /// A node's state in a run: valid when `stamp` is the run's generation (reached), settled
@@ -78,6 +82,8 @@ pub(crate) struct Dijkstra {
     generation: u32,
     heap: BinaryHeap<Reverse<Entry>>,
     order: Vec<u32>,
+    /// Pushes so far in the search in progress.
+    seq: u32,
 }
 
 impl Dijkstra {
@@ -121,23 +127,6 @@ impl Dijkstra {
         self.settle(adj, w, ends, radius, most, |_| 0.0)
     }
 
-    /// The least-weight path from `src` to `dst` when it is at most `radius` long, by A*:
-    /// nodes are settled by `g + bound` (g the distance from `src`, `bound(v)` a consistent
-    /// lower bound on v's distance to `dst`: module `landmarks`), so the search heads for
-    /// `dst` instead of growing a ball around `src`. Returns whether `dst` was settled; then
-    /// [`dist`](Self::dist), [`pred`](Self::pred) and [`path`](Self::path) hold as after
-    /// [`run`](Self::run). With `bound ≡ 0` it is `run`.
-    pub(crate) fn run_toward(
-        &mut self,
-        adj: &[AdjacencyList],
-        w: &[f64],
-        (src, dst): (usize, usize),
-        radius: f64,
-        bound: impl Fn(usize) -> f64,
-    ) -> bool {
-        self.settle(adj, w, (src, Some(dst)), radius, usize::MAX, bound) == Some(true)
-    }
-
     /// The one search loop: nodes settled by distance plus `bound` (0 for Dijkstra), until
     /// `target` is settled (Some(true)), every node reachable within `radius` is (Some(false)),
     /// or `most` nodes are (None).
@@ -161,8 +150,52 @@ impl Dijkstra {
         self.order.clear();
         self.node[src].stamp = g;
         self.node[src].dist = 0.0;
-        let mut seq = 0u32;
-        self.heap.push(Entry::new(bound(src), seq, src as u32));
+        self.seq = 0;
+        self.heap.push(Entry::new(bound(src), 0, src as u32));
+        self.drive(adj, w, target, radius, most, bound)
+    }
+
+    /// Go on with the search a [`run_settling`](Self::run_settling) gave up, aimed at `dst`
+    /// from here by A*: nodes are settled by `g + bound` (g the distance from the source,
+    /// `bound(v)` a consistent lower bound on v's distance to `dst`: module `landmarks`), so
+    /// the search heads for `dst` instead of growing a ball around the source. The nodes it
+    /// settled keep their least distances, and the ones it reached are queued again by
+    /// distance plus `bound`: the search is the one A* makes with those nodes closed, exact
+    /// with a consistent bound. Returns whether `dst` was settled (within `radius`); then
+    /// [`dist`](Self::dist), [`pred`](Self::pred) and [`path`](Self::path) hold as after
+    /// [`run`](Self::run). (`run_settling` with `most` 0 then this is A* from the start.)
+    pub(crate) fn resume_toward(
+        &mut self,
+        adj: &[AdjacencyList],
+        w: &[f64],
+        dst: usize,
+        radius: f64,
+        bound: impl Fn(usize) -> f64,
+    ) -> bool {
+        let g = self.generation;
+        let queued: Vec<Entry> = self.heap.drain().map(|Reverse(e)| e).collect();
+        for e in queued {
+            let v = e.node();
+            if self.node[v].done != g {
+                let key = self.node[v].dist + bound(v);
+                self.heap.push(Entry::new(key, e.seq(), v as u32));
+            }
+        }
+        self.drive(adj, w, Some(dst), radius, usize::MAX, bound) == Some(true)
+    }
+
+    /// The loop of [`settle`](Self::settle) from the queue as it is.
+    fn drive(
+        &mut self,
+        adj: &[AdjacencyList],
+        w: &[f64],
+        target: Option<usize>,
+        radius: f64,
+        most: usize,
+        bound: impl Fn(usize) -> f64,
+    ) -> Option<bool> {
+        let g = self.generation;
+        let mut seq = self.seq;
         while let Some(Reverse(entry)) = self.heap.pop() {
             let v = entry.node();
             if self.node[v].done == g {
@@ -173,6 +206,9 @@ impl Dijkstra {
                 break;
             }
             if self.order.len() >= most {
+                // Queued again, for a search that goes on (`resume_toward`).
+                self.heap.push(Reverse(entry));
+                self.seq = seq;
                 return None;
             }
             self.node[v].done = g;
@@ -196,6 +232,7 @@ impl Dijkstra {
                 }
             }
         }
+        self.seq = seq;
         Some(false)
     }
 

@@ -21,10 +21,13 @@
 //! nodes it lowers (a new node: one step; a loop closure: the region it shortens). A query
 //! that avoids an edge searches a subgraph, whose distances are at least these: the bound
 //! still holds. The graph never loses an edge (an eviction rebuilds the estimator from
-//! scratch). Landmarks are added as the graph grows — the first at
-//! [`FIRST_LANDMARK_AT`] nodes, one more at each doubling, up to [`MAX_LANDMARKS`] — each
-//! the node farthest from the landmarks so far (from the newest node for the first), which
-//! puts them on the map's periphery; a new one costs one search of the whole graph.
+//! scratch). Landmarks are kept only once the owner wants them ([`Landmarks::want`]: the
+//! incremental basis does when its searches often cross the map), and then as the graph
+//! grows — the first at [`FIRST_LANDMARK_AT`] nodes, one more at each doubling, up to
+//! [`MAX_LANDMARKS`] (as many at once as the graph's size calls for when they are wanted
+//! late) — each the node farthest from the landmarks so far (from the newest node for the
+//! first), which puts them on the map's periphery; a new one costs one search of the whole
+//! graph.
 //!
 //! Measured before writing this (a Python prototype on M3500 streamed in robot order, a search
 //! from the newest node to a random older one at a fifth of the arrivals): 4.3× fewer settled
@@ -55,6 +58,10 @@ pub(crate) struct Landmarks {
     nodes: usize,
     /// Node count at which the next landmark is added.
     next_at: usize,
+    /// Landmarks are kept ([`Self::want`]).
+    wanted: bool,
+    /// Searches that grew past the plain start while no landmark was kept.
+    pub far_searches: usize,
     /// Scratch of the decrease searches.
     heap: BinaryHeap<Reverse<(u64, u32)>>,
     /// The landmarks a query uses ([`ACTIVE`] at most) and the target's distances from them.
@@ -68,6 +75,11 @@ pub(crate) struct Landmarks {
 const ACTIVE: usize = MAX_LANDMARKS;
 
 impl Landmarks {
+    /// Nodes with an edge so far.
+    pub fn nodes(&self) -> usize {
+        self.nodes
+    }
+
     /// Number of landmarks in use.
     pub fn count(&self) -> usize {
         self.count
@@ -115,13 +127,24 @@ impl Landmarks {
             }
         }
         let n = self.nodes;
+        if !self.wanted {
+            return;
+        }
         if self.next_at == 0 {
             self.next_at = FIRST_LANDMARK_AT;
         }
-        if n >= self.next_at && self.count < MAX_LANDMARKS {
-            self.next_at = n.saturating_mul(2);
+        // As many as the schedule gives a graph of this size (several at once when they
+        // were wanted late).
+        while n >= self.next_at && self.count < MAX_LANDMARKS {
+            self.next_at = self.next_at.saturating_mul(2);
             self.add_landmark(adj, w, b, search);
         }
+    }
+
+    /// From the next edge on, keep landmarks (none are kept until they are wanted: their
+    /// upkeep costs every edge, and a stream whose searches stay local never needs them).
+    pub fn want(&mut self) {
+        self.wanted = true;
     }
 
     /// Lower landmark l's distance of node v to `d` and spread the decrease (a search that
@@ -248,6 +271,7 @@ mod tests {
     impl Growing {
         /// Add edge a — b of weight x (nodes created as needed); its id.
         fn add(&mut self, a: usize, b: usize, x: f64) -> u32 {
+            self.lm.want();
             while self.adj.len() <= a.max(b) {
                 self.adj.push(SmallVec::new());
             }
@@ -334,7 +358,8 @@ mod tests {
 
     /// A* with the landmark bound finds what Dijkstra finds: the same least distance to the
     /// target, within a radius exactly when Dijkstra does, by a path that walks from the source
-    /// to the target with that weight; and it settles fewer nodes across a map.
+    /// to the target with that weight; and it settles fewer nodes across a map. So does a
+    /// search begun plain and aimed where it stopped (`resume_toward`).
     #[test]
     fn aimed_searches_find_the_least_weight_path() {
         let mut state = 11;
@@ -363,6 +388,7 @@ mod tests {
         let Growing { adj, w, mut lm, .. } = g;
         assert!(lm.count() >= 3);
         let (mut plain, mut aimed) = (Dijkstra::default(), Dijkstra::default());
+        let mut resumed = Dijkstra::default();
         let (mut settled_plain, mut settled_aimed) = (0, 0);
         for q in 0..300 {
             let (s, t) = (
@@ -376,8 +402,28 @@ mod tests {
             };
             let one = plain.run(&adj, &w, s, Some(t), radius);
             lm.aim(s, t);
-            let two = aimed.run_toward(&adj, &w, (s, t), radius, |v| lm.bound(v));
+            // A* from the start.
+            let two = aimed.run_settling(&adj, &w, (s, Some(t)), radius, 0) == Some(true)
+                || aimed.resume_toward(&adj, &w, t, radius, |v| lm.bound(v));
             assert_eq!(one, two, "{s} -> {t} within {radius}");
+            // Plain for the first few nodes, then aimed from where it stopped.
+            let most = (lcg(&mut state) % 200) as usize;
+            let three = match resumed.run_settling(&adj, &w, (s, Some(t)), radius, most) {
+                Some(found) => found,
+                None => resumed.resume_toward(&adj, &w, t, radius, |v| lm.bound(v)),
+            };
+            assert_eq!(
+                one, three,
+                "{s} -> {t} within {radius}, resumed after {most}"
+            );
+            if three && s != t {
+                let exact = plain.dist(t);
+                assert!((resumed.dist(t) - exact).abs() <= 1e-12 * exact);
+                let mut path = SmallVec::new();
+                resumed.path(&ends, s, t, &mut path);
+                let weight: f64 = path.iter().map(|term| w[term.edge as usize]).sum();
+                assert!((weight - exact).abs() <= 1e-9 * exact);
+            }
             settled_plain += plain.order().len();
             settled_aimed += aimed.order().len();
             if !two || s == t {

@@ -311,15 +311,29 @@ impl CycleBasis {
 }
 
 /// Nodes a shortest-path query of the incremental basis settles by plain Dijkstra before it
-/// starts again aimed at its target (A* with landmark bounds, module `landmarks`). Measured
-/// (2026-12-03, `so2lin stream FILE --json --estimate none`, robot order) on M3500 + 1000 false
-/// loop closures, 8 clustered and 7 random seeds: aiming every search took the streams 15–30 %
-/// below plain Dijkstra's, but its other least-σ² paths among equal ones changed which loop
-/// closures clustered seed 7 kept (106 genuine ones quarantined, against none); with the first
-/// 256 nodes searched plainly, every file quarantined the same number of edges as before but
-/// random seed 7 (1 105 against 1 106) at 10–25 % below plain Dijkstra's time (512: 5–15 %).
-/// Local loops, most of a clean stream's, are searched as before.
+/// goes on aimed at its target from where it stands (A* with landmark bounds, module
+/// `landmarks`; the nodes settled keep their distances). Measured (2026-12-03, `so2lin stream
+/// FILE --json --estimate none`, robot order) on M3500 + 1000 false loop closures, 8 clustered
+/// and 7 random seeds: aiming every search from its start took the streams 15–30 % below plain
+/// Dijkstra's, but its other least-σ² paths among equal ones changed which loop closures
+/// clustered seed 7 kept (106 genuine ones quarantined, against none); aimed after the first
+/// 256 nodes, every file quarantines as many edges as with plain Dijkstra, in 5–25 % less time
+/// but on random seed 7 (21 % more); restarting the search aimed instead of going on cost
+/// another 5–7 %, and 512 plain nodes another 5–10 %. Local loops, most of a clean stream's,
+/// are searched as before.
 const PLAIN_SEARCH_NODES: usize = 256;
+
+/// Landmarks are kept once at least this many searches have grown past
+/// [`PLAIN_SEARCH_NODES`], and at least one per [`FAR_SEARCH_NODES`] nodes of the graph: their
+/// upkeep costs every edge, and only a stream whose searches often cross the map repays it.
+/// Measured (2026-12-03): M3500 + 1000 false edges reach it at 920–1 080 nodes, the simulated
+/// worlds of 10 000 and 40 000 poses at 4 000 and 16 800, w20000 at 6 700; city10000, M3500,
+/// intel and ais2klinik never (city10000 had its 64th such search at 4 520 nodes; with
+/// landmarks kept from there its stream took 9 % longer).
+const FAR_SEARCHES_FOR_LANDMARKS: usize = 64;
+
+/// See [`FAR_SEARCHES_FOR_LANDMARKS`].
+const FAR_SEARCH_NODES: usize = 32;
 
 /// The incremental cycle basis, grown one edge at a time (method [§7](crate::method#7-online-estimation)).
 ///
@@ -466,20 +480,33 @@ impl IncrementalBasis {
     ) -> bool {
         // A local loop is found by the plain search (no bound to evaluate, and the least-σ²
         // path it has always taken among equal ones); a search that grows past
-        // PLAIN_SEARCH_NODES is aimed at the other end instead.
-        let plain = if self.landmarks.count() == 0 {
-            usize::MAX
-        } else {
-            PLAIN_SEARCH_NODES
-        };
+        // PLAIN_SEARCH_NODES goes on aimed at the other end.
         let ends = (src, Some(dst));
-        let found = match (self.search).run_settling(&self.adj, &self.sigma2, ends, radius, plain) {
+        let found = match (self.search).run_settling(
+            &self.adj,
+            &self.sigma2,
+            ends,
+            radius,
+            PLAIN_SEARCH_NODES,
+        ) {
             Some(found) => found,
+            None if self.landmarks.count() == 0 => {
+                // No landmark yet: on as a plain search (the same one, uninterrupted), and
+                // landmarks are kept once such searches are frequent.
+                self.landmarks.far_searches += 1;
+                let far = self.landmarks.far_searches;
+                if far >= FAR_SEARCHES_FOR_LANDMARKS
+                    && far * FAR_SEARCH_NODES >= self.landmarks.nodes()
+                {
+                    self.landmarks.want();
+                }
+                (self.search).resume_toward(&self.adj, &self.sigma2, dst, radius, |_| 0.0)
+            }
             None => {
                 self.landmarks.aim(src, dst);
                 let landmarks = &self.landmarks;
                 let bound = |v: usize| landmarks.bound(v);
-                (self.search).run_toward(&self.adj, &self.sigma2, (src, dst), radius, bound)
+                (self.search).resume_toward(&self.adj, &self.sigma2, dst, radius, bound)
             }
         };
         if !found {
@@ -542,6 +569,42 @@ mod tests {
         let c = b.add_edge(0, 1, 0.5).unwrap();
         // Chord 0→1 then back 1→0: edge 0 (0→1) against, weight 1 < edge 1's 2.
         assert_eq!(c.terms[1], SignedEdge { edge: 0, sign: -1 });
+    }
+
+    /// Landmarks are kept only for a stream whose searches often cross the map: a grid grown
+    /// row by row (each node joined to its left and lower neighbours: loops of four) keeps
+    /// none; the same grid with a loop closure across it every 8 nodes keeps them, and its
+    /// cycles still close and are as light as a plain search's.
+    #[test]
+    fn landmarks_are_kept_when_searches_cross_the_map() {
+        let side = 60;
+        let grow = |far: bool| {
+            let mut b = IncrementalBasis::new();
+            let mut state = 5u64;
+            for v in 1..side * side {
+                if v % side > 0 {
+                    b.add_edge(v - 1, v, 1.0);
+                }
+                if v >= side {
+                    b.add_edge(v - side, v, 1.0);
+                }
+                if far && v > 2 * side && v % 8 == 0 {
+                    state = state
+                        .wrapping_mul(6_364_136_223_846_793_005)
+                        .wrapping_add(1_442_695_040_888_963_407);
+                    let u = (state >> 33) as usize % (v - side);
+                    let cycle = b.probe(u, v).expect("connected");
+                    // As light as a plain search's path.
+                    let mut plain = Dijkstra::default();
+                    assert!(plain.run(&b.adj, &b.sigma2, v, Some(u), f64::INFINITY));
+                    assert!((b.path_weight(&cycle) - plain.dist(u)).abs() < 1e-9);
+                    b.add_edge(u, v, 1.0);
+                }
+            }
+            b
+        };
+        assert_eq!(grow(false).landmarks.count(), 0);
+        assert!(grow(true).landmarks.count() >= 3);
     }
 
     /// A ring 0–1–…–9–0 of unit weights plus a shortcut 0–5 (weight 0.5): avoiding the
