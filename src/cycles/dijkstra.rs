@@ -173,15 +173,27 @@ impl Dijkstra {
         bound: impl Fn(usize) -> f64,
     ) -> bool {
         let g = self.generation;
-        let queued: Vec<Entry> = self.heap.drain().map(|Reverse(e)| e).collect();
-        for e in queued {
-            let v = e.node();
-            if self.node[v].done != g {
-                let key = self.node[v].dist + bound(v);
-                self.heap.push(Entry::new(key, e.seq(), v as u32));
-            }
+        // Re-keyed in place and heaped again (the entries' buffer reused).
+        let mut queued = std::mem::take(&mut self.heap).into_vec();
+        queued.retain(|Reverse(e)| self.node[e.node()].done != g);
+        for entry in &mut queued {
+            let (v, seq) = (entry.0.node(), entry.0.seq());
+            *entry = Entry::new(self.node[v].dist + bound(v), seq, v as u32);
         }
+        self.heap = BinaryHeap::from(queued);
         self.drive(adj, w, Some(dst), radius, usize::MAX, bound) == Some(true)
+    }
+
+    /// Go on with the search a [`run_settling`](Self::run_settling) gave up, as it was (the
+    /// same search as one never interrupted): whether `dst` was settled within `radius`.
+    pub(crate) fn resume(
+        &mut self,
+        adj: &[AdjacencyList],
+        w: &[f64],
+        dst: usize,
+        radius: f64,
+    ) -> bool {
+        self.drive(adj, w, Some(dst), radius, usize::MAX, |_| 0.0) == Some(true)
     }
 
     /// The loop of [`settle`](Self::settle) from the queue as it is.

@@ -30,9 +30,9 @@
 //! graph.
 //!
 //! Measured before writing this (a Python prototype on M3500 streamed in robot order, a search
-//! from the newest node to a random older one at a fifth of the arrivals): 4.3× fewer settled
-//! nodes with the five landmarks its 3 500 nodes get, for 117 000 node updates to keep the
-//! distances, a tenth of what the searches saved.
+//! from the newest node to a random older one at a fifth of the arrivals, five landmarks):
+//! 4.3× fewer settled nodes, for 117 000 node updates to keep the distances, a tenth of what
+//! the searches saved.
 
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
@@ -46,10 +46,24 @@ pub(crate) const MAX_LANDMARKS: usize = 8;
 /// Nodes before the first landmark (below, a search is cheap anyway).
 pub(crate) const FIRST_LANDMARK_AT: usize = 256;
 
+/// Landmarks are wanted once at least this many searches have grown past their plain start
+/// (see [`Landmarks::note_far_search`]), and at least one per [`FAR_SEARCH_NODES`] nodes of
+/// the graph: their upkeep costs every edge, and only a stream whose searches often cross the
+/// map repays it. Measured (2026-12-03, `so2lin stream FILE --json`, robot order): M3500 + 1000
+/// false edges reach it at 920–1 080 nodes, the simulated worlds of 10 000 and 40 000 poses at
+/// 4 000 and 16 800, w20000 at 6 700; city10000, M3500, intel and ais2klinik never (city10000
+/// had its 64th such search at 4 520 nodes; with landmarks kept from there its stream took 9 %
+/// longer).
+const FAR_SEARCHES_FOR_LANDMARKS: usize = 64;
+
+/// See [`FAR_SEARCHES_FOR_LANDMARKS`].
+const FAR_SEARCH_NODES: usize = 32;
+
 /// Exact least-σ² distances from a few landmarks, kept as the graph grows (module docs).
 #[derive(Clone, Debug, Default)]
 pub(crate) struct Landmarks {
-    /// `dist[v * MAX_LANDMARKS + l]`: distance from landmark l to node v (∞: not reached).
+    /// `dist[v * MAX_LANDMARKS + l]`: distance from landmark l to node v (∞: not reached);
+    /// empty until landmarks are wanted.
     dist: Vec<f64>,
     /// Landmarks in use.
     count: usize,
@@ -60,34 +74,27 @@ pub(crate) struct Landmarks {
     next_at: usize,
     /// Landmarks are kept ([`Self::want`]).
     wanted: bool,
-    /// Searches that grew past the plain start while no landmark was kept.
-    pub far_searches: usize,
+    /// Searches that grew past their plain start while no landmark was wanted.
+    far_searches: usize,
     /// Scratch of the decrease searches.
     heap: BinaryHeap<Reverse<(u64, u32)>>,
-    /// The landmarks a query uses ([`ACTIVE`] at most) and the target's distances from them.
-    active: [(usize, f64); ACTIVE],
+    /// The landmarks the query in progress uses (those reaching its source and target) and
+    /// the target's distances from them.
+    active: [(usize, f64); MAX_LANDMARKS],
     /// How many of `active` are set.
     active_count: usize,
 }
 
-/// Landmarks a query uses: those with the largest bound at its source (one lookup each per
-/// node the search reaches, instead of one per landmark).
-const ACTIVE: usize = MAX_LANDMARKS;
-
 impl Landmarks {
-    /// Nodes with an edge so far.
-    pub fn nodes(&self) -> usize {
-        self.nodes
-    }
-
     /// Number of landmarks in use.
     pub fn count(&self) -> usize {
         self.count
     }
 
-    /// Make room for nodes `0..n` (not reached from any landmark yet).
+    /// Make room for nodes `0..n` (not reached from any landmark yet), once landmarks are
+    /// wanted (no memory before: most streams never want them).
     pub fn reserve_nodes(&mut self, n: usize) {
-        if self.dist.len() < n * MAX_LANDMARKS {
+        if self.wanted && self.dist.len() < n * MAX_LANDMARKS {
             self.dist.resize(n * MAX_LANDMARKS, f64::INFINITY);
         }
     }
@@ -135,6 +142,9 @@ impl Landmarks {
         }
         // As many as the schedule gives a graph of this size (several at once when they
         // were wanted late).
+        if n >= self.next_at {
+            self.reserve_nodes(adj.len());
+        }
         while n >= self.next_at && self.count < MAX_LANDMARKS {
             self.next_at = self.next_at.saturating_mul(2);
             self.add_landmark(adj, w, b, search);
@@ -145,6 +155,16 @@ impl Landmarks {
     /// upkeep costs every edge, and a stream whose searches stay local never needs them).
     pub fn want(&mut self) {
         self.wanted = true;
+    }
+
+    /// A search grew past its plain start while no landmark is kept: count it, and want
+    /// landmarks once such searches are frequent ([`FAR_SEARCHES_FOR_LANDMARKS`]).
+    pub fn note_far_search(&mut self) {
+        self.far_searches += 1;
+        let far = self.far_searches;
+        if far >= FAR_SEARCHES_FOR_LANDMARKS && far * FAR_SEARCH_NODES >= self.nodes {
+            self.want();
+        }
     }
 
     /// Lower landmark l's distance of node v to `d` and spread the decrease (a search that
@@ -203,26 +223,20 @@ impl Landmarks {
         }
     }
 
-    /// Prepare the bound from `source` toward `target` ([`Self::bound`]): the [`ACTIVE`]
-    /// landmarks with the largest bound at the source (ties: the first added), among those
-    /// that reach both.
+    /// Prepare the bound from `source` toward `target` ([`Self::bound`]): the landmarks that
+    /// reach both, with the target's distances. (Only the two with the largest bound at the
+    /// source was tried: slower, the bound weaker.)
     pub fn aim(&mut self, source: usize, target: usize) {
-        let mut ranked: [(f64, usize, f64); MAX_LANDMARKS] = [(0.0, 0, 0.0); MAX_LANDMARKS];
-        let mut k = 0;
+        self.active_count = 0;
         for l in 0..self.count {
             let (ds, dt) = (
                 self.dist[source * MAX_LANDMARKS + l],
                 self.dist[target * MAX_LANDMARKS + l],
             );
             if ds.is_finite() && dt.is_finite() {
-                ranked[k] = ((dt - ds).abs(), l, dt);
-                k += 1;
+                self.active[self.active_count] = (l, dt);
+                self.active_count += 1;
             }
-        }
-        ranked[..k].sort_by(|x, y| y.0.total_cmp(&x.0).then(x.1.cmp(&y.1)));
-        self.active_count = k.min(ACTIVE);
-        for (slot, &(_, l, dt)) in self.active.iter_mut().zip(&ranked[..self.active_count]) {
-            *slot = (l, dt);
         }
     }
 
@@ -271,7 +285,10 @@ mod tests {
     impl Growing {
         /// Add edge a — b of weight x (nodes created as needed); its id.
         fn add(&mut self, a: usize, b: usize, x: f64) -> u32 {
-            self.lm.want();
+            if !self.lm.wanted {
+                self.lm.want();
+                self.lm.reserve_nodes(self.adj.len());
+            }
             while self.adj.len() <= a.max(b) {
                 self.adj.push(SmallVec::new());
             }

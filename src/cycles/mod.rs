@@ -17,8 +17,8 @@
 //! - the **incremental basis** ([`IncrementalBasis`]): edges arrive in order; an edge between
 //!   two already connected nodes closes the cycle `chord + least-σ² path` through the graph so
 //!   far (Dijkstra from one end, stopped when the other end is settled, so a local loop only
-//!   explores a local ball; a search that grows past a few hundred nodes starts again aimed
-//!   at the other end, A* with landmark bounds kept exact as the graph grows, module
+//!   explores a local ball; once such searches often grow past a few hundred nodes, those go
+//!   on aimed at the other end, A* with landmark bounds kept exact as the graph grows, module
 //!   `landmarks`, so a loop across the map costs a corridor instead of half the map). This is
 //!   the basis of the online estimator; the batch pipeline computes it by replaying the file's
 //!   edges through the same type;
@@ -323,23 +323,12 @@ impl CycleBasis {
 /// are searched as before.
 const PLAIN_SEARCH_NODES: usize = 256;
 
-/// Landmarks are kept once at least this many searches have grown past
-/// [`PLAIN_SEARCH_NODES`], and at least one per [`FAR_SEARCH_NODES`] nodes of the graph: their
-/// upkeep costs every edge, and only a stream whose searches often cross the map repays it.
-/// Measured (2026-12-03): M3500 + 1000 false edges reach it at 920–1 080 nodes, the simulated
-/// worlds of 10 000 and 40 000 poses at 4 000 and 16 800, w20000 at 6 700; city10000, M3500,
-/// intel and ais2klinik never (city10000 had its 64th such search at 4 520 nodes; with
-/// landmarks kept from there its stream took 9 % longer).
-const FAR_SEARCHES_FOR_LANDMARKS: usize = 64;
-
-/// See [`FAR_SEARCHES_FOR_LANDMARKS`].
-const FAR_SEARCH_NODES: usize = 32;
-
 /// The incremental cycle basis, grown one edge at a time (method [§7](crate::method#7-online-estimation)).
 ///
 /// The path is found by the shared Dijkstra search (module `dijkstra`) from one end, stopped when the other
-/// end is settled, on the graph as it has grown so far; past 256 settled nodes, by A* toward
-/// the other end with the landmark bounds (module `landmarks`).
+/// end is settled, on the graph as it has grown so far; past 256 settled nodes, once such
+/// searches are frequent, by A* toward the other end with the landmark bounds (module
+/// `landmarks`).
 #[derive(Clone, Debug, Default)]
 pub struct IncrementalBasis {
     adj: Adjacency,
@@ -493,14 +482,8 @@ impl IncrementalBasis {
             None if self.landmarks.count() == 0 => {
                 // No landmark yet: on as a plain search (the same one, uninterrupted), and
                 // landmarks are kept once such searches are frequent.
-                self.landmarks.far_searches += 1;
-                let far = self.landmarks.far_searches;
-                if far >= FAR_SEARCHES_FOR_LANDMARKS
-                    && far * FAR_SEARCH_NODES >= self.landmarks.nodes()
-                {
-                    self.landmarks.want();
-                }
-                (self.search).resume_toward(&self.adj, &self.sigma2, dst, radius, |_| 0.0)
+                self.landmarks.note_far_search();
+                (self.search).resume(&self.adj, &self.sigma2, dst, radius)
             }
             None => {
                 self.landmarks.aim(src, dst);
