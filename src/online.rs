@@ -66,10 +66,14 @@
 //! for a false edge whose own cycle has no power (the path avoiding it is long, its covariance
 //! wide): on M3500 + 1000 false edges, seeds 4 and 5, six such edges stayed in and 250 and 125
 //! genuine loop closures were quarantined through them (precision 0.80, 0.89). An eviction
-//! quarantines e and **rebuilds** the estimator by replaying every arrival in input order
+//! quarantines e and **rebuilds** the estimator by replaying the arrivals in input order
 //! without it (the current scales standing in for the replay's own until it has 50 cycles):
-//! O(m) for that one step, none on clean data (no clean benchmark file of ≤ 25 000 edges evicts
-//! anything). The replay reuses what it can: a quarantined loop closure arriving again takes
+//! from the start at the first rebuild, O(m) for that one step, and from then on from the
+//! latest checkpoint before e's arrival (module `checkpoint`: a copy of the state kept every
+//! quarter of the arrivals; a stream that has quarantined something is rebuilt from the start
+//! once, early, as soon as its translation closures give a noise scale, so that its first
+//! cycles are re-tested at it); none of this on clean data (no clean benchmark file of
+//! ≤ 25 000 edges quarantines or evicts anything). The replay reuses what it can: a quarantined loop closure arriving again takes
 //! the cycle it failed on before while the replay's graph is a subgraph of the replaced one's
 //! (module `replay`: no search across the map), and the estimate's factors are built once at
 //! the replay's end instead of through every replayed step (M3500 + 1000 false edges, the
@@ -125,6 +129,7 @@
 use serde::Serialize;
 use smallvec::SmallVec;
 
+mod checkpoint;
 mod estimate;
 mod evict;
 mod laplacian;
@@ -459,7 +464,7 @@ pub struct OnlineEstimator {
     /// The suspects whose failures have reached their bar (examined at the end of a step, so
     /// a step does not scan every suspect).
     suspects_due: BTreeSet<usize>,
-    /// Arrivals replayed by evictions so far (each replay replays every arrival before it):
+    /// Arrivals replayed by rebuilds so far (each replays the arrivals since its checkpoint):
     /// kept within [`evict::REPLAY_BUDGET`] times the arrivals.
     replay_work: usize,
     /// Set while the estimator is being rebuilt by a replay: no examination (no
@@ -473,6 +478,14 @@ pub struct OnlineEstimator {
     backlog: Vec<(u32, i64, f64)>,
     /// New cycles screened by prediction so far.
     predicted: usize,
+    /// Copies of the screening state an eviction's replay may start from
+    /// ([`checkpoint`]), oldest first.
+    checkpoints: Vec<checkpoint::Checkpoint>,
+    /// Arrivals between two checkpoints, at least ([`checkpoint::MIN_INTERVAL`]; tests set
+    /// it lower to replay from many checkpoints in small worlds).
+    checkpoint_interval: usize,
+    /// Evictions replayed from a checkpoint, and from the start.
+    replays: [usize; 2],
 }
 
 /// Cycles whose conditional sd of γ is below this feed the angle noise scale: their nearest
@@ -615,6 +628,9 @@ impl OnlineEstimator {
             predicts: config.estimate_every_step,
             backlog: Vec::new(),
             predicted: 0,
+            checkpoints: Vec::new(),
+            checkpoint_interval: checkpoint::MIN_INTERVAL,
+            replays: [0; 2],
         })
     }
 
@@ -675,7 +691,9 @@ impl OnlineEstimator {
         self.arrivals += 1;
         self.retest_due(&mut step);
         self.examine_suspects(&mut step);
+        self.warm_up(&mut step);
         self.refresh_counters();
+        self.checkpoint_if_due();
         Ok(step)
     }
 

@@ -104,8 +104,10 @@ impl Hints {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
+    use crate::graph::{Edge, Information};
+    use crate::sim::{OutlierConfig, OutlierKind, SimConfig, inject_outliers, simulate};
 
     fn cycle(edges: &[u32]) -> Cycle {
         Cycle {
@@ -155,34 +157,45 @@ mod tests {
     /// edge's declared noise is scaled by its own factor in [1, 1.01) (the simulator gives
     /// every edge the same noise, so paths of equal σ² abound, and which of them a search picks
     /// depends on how it searches: module docs).
+    /// A simulated 1 000-pose world (seed `700 + seed`) with 40 random false loop closures and
+    /// every edge's declared noise 16 times too wide, so that evictions happen; with `own`,
+    /// each edge's noise is scaled by its own factor in [1, 1.01) as well (unique least-σ²
+    /// paths). The edges in file order, and the false edges' indices.
+    pub(crate) fn wide_outlier_world(seed: u64, own: bool) -> (Vec<Edge>, Vec<usize>) {
+        let world = simulate(&SimConfig::new(1000, 700 + seed)).unwrap();
+        let bad = inject_outliers(
+            &world.graph,
+            &OutlierConfig {
+                count: 40,
+                kind: OutlierKind::Random,
+                seed,
+            },
+        )
+        .unwrap();
+        let mut state = seed;
+        let edges = (bad.graph.edges().iter())
+            .map(|e| {
+                state = state
+                    .wrapping_mul(6_364_136_223_846_793_005)
+                    .wrapping_add(1_442_695_040_888_963_407);
+                let factor = if own {
+                    1.0 + (state >> 11) as f64 / (1u64 << 53) as f64 / 100.0
+                } else {
+                    1.0
+                };
+                let wide = Information(e.information().0.map(|v| v / (16.0 * factor)));
+                Edge::new(e.from(), e.to(), e.measurement(), wide).unwrap()
+            })
+            .collect();
+        (edges, bad.false_edges.iter().map(|f| f.edge).collect())
+    }
+
     #[test]
     fn a_replay_that_reuses_paths_decides_as_one_that_searches() {
-        use crate::graph::{Edge, Information};
         use crate::online::{OnlineConfig, OnlineEstimator};
-        use crate::sim::{OutlierConfig, OutlierKind, SimConfig, inject_outliers, simulate};
         let mut replays = 0;
         for seed in 0..4u64 {
-            let world = simulate(&SimConfig::new(1000, 700 + seed)).unwrap();
-            let bad = inject_outliers(
-                &world.graph,
-                &OutlierConfig {
-                    count: 40,
-                    kind: OutlierKind::Random,
-                    seed,
-                },
-            )
-            .unwrap();
-            let mut state = seed;
-            let edges: Vec<Edge> = (bad.graph.edges().iter())
-                .map(|e| {
-                    state = state
-                        .wrapping_mul(6_364_136_223_846_793_005)
-                        .wrapping_add(1_442_695_040_888_963_407);
-                    let own = 1.0 + (state >> 11) as f64 / (1u64 << 53) as f64 / 100.0;
-                    let wide = Information(e.information().0.map(|v| v / (16.0 * own)));
-                    Edge::new(e.from(), e.to(), e.measurement(), wide).unwrap()
-                })
-                .collect();
+            let (edges, _) = wide_outlier_world(seed, true);
             let run = |reuse: bool| {
                 let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
                 est.reuse_paths = reuse;
