@@ -323,6 +323,14 @@ pub struct Counters {
     /// estimate's work applied so far, which the next read (or loop closure, while the
     /// estimate is read every step) brings up to date.
     pub estimate_relinearisations: usize,
+    /// Times the estimator was rebuilt by a replay of the stream: evictions, and the one
+    /// re-test from the start of a stream that quarantined a loop closure (module
+    /// `online::checkpoint`).
+    pub rebuilds: usize,
+    /// Those that replayed from a checkpoint instead of from the first arrival.
+    pub rebuilds_from_checkpoint: usize,
+    /// Arrivals the rebuilds replayed, in all.
+    pub replayed_arrivals: usize,
 }
 
 /// The noise scales the quarantine uses ([`OnlineEstimator::noise_scales`]), estimated from
@@ -1251,6 +1259,9 @@ impl OnlineEstimator {
         self.counters.estimate_renewals = renewals;
         self.counters.renewal_waits = waits + self.cond_waits;
         self.counters.estimate_relinearisations = self.estimate.relinearisations;
+        self.counters.rebuilds = self.replays[0] + self.replays[1];
+        self.counters.rebuilds_from_checkpoint = self.replays[0];
+        self.counters.replayed_arrivals = self.replay_work;
     }
 
     /// Counters of the run so far.

@@ -343,6 +343,20 @@ fn stream_json_reports_latency_and_matches_screen() {
         );
     }
     assert!(v["peak_rss_bytes"].as_u64().unwrap() > 0);
+    // A clean stream quarantines nothing and is never rebuilt; one with false loop closures
+    // is, at least once (the re-test from the start once its noise scale is known), and says
+    // so.
+    assert_eq!(v["rebuilds"], 0);
+    assert_eq!(v["replayed_arrivals"], 0);
+    let bad = simulated(
+        "stream_outliers.g2o",
+        &["--poses", "600", "--seed", "8", "--outliers", "20"],
+    );
+    let v = run_json(["stream".as_ref(), "--json".as_ref(), bad.as_os_str()]);
+    let rebuilds = v["rebuilds"].as_u64().unwrap();
+    assert!(rebuilds >= 1, "{v}");
+    assert!(v["rebuilds_from_checkpoint"].as_u64().unwrap() <= rebuilds);
+    assert!(v["replayed_arrivals"].as_u64().unwrap() > 0);
     assert_eq!(
         v["steps"].as_u64().unwrap(),
         v["cycles"].as_u64().unwrap() + 599

@@ -215,6 +215,9 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "noise_scales": est.noise_scales(),
             "rescreens": c.rescreens,
             "reorders": c.reorders,
+            "rebuilds": c.rebuilds,
+            "rebuilds_from_checkpoint": c.rebuilds_from_checkpoint,
+            "replayed_arrivals": c.replayed_arrivals,
             "latency_us": latency,
             "stream_seconds": stream_s,
             "steps_seconds": steps_s,
@@ -265,6 +268,12 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         c.renewal_waits,
         c.estimate_relinearisations
     );
+    if c.rebuilds > 0 {
+        println!(
+            "rebuilds: {} ({} from a checkpoint), {} arrivals replayed",
+            c.rebuilds, c.rebuilds_from_checkpoint, c.replayed_arrivals
+        );
+    }
     let second = match result.outcome {
         so2lin::screening::SecondOutcome::Complete => "second screening complete",
         so2lin::screening::SecondOutcome::NoneInside => {
