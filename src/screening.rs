@@ -641,6 +641,18 @@ impl Screener {
         Self::default()
     }
 
+    /// A copy of the per-cycle state without the factor of P_UU (an empty [`Conditioner`]):
+    /// for a copy of the online state that rebuilds the factor when it is used again.
+    pub(crate) fn without_conditioner(&self) -> Self {
+        Self {
+            cond: Conditioner::new(),
+            intervals: self.intervals.clone(),
+            determined: self.determined.clone(),
+            inconsistent: self.inconsistent.clone(),
+            inconsistent_count: self.inconsistent_count,
+        }
+    }
+
     /// Register cycles up to `model.len()` (undetermined, no candidates yet).
     pub fn grow(&mut self, cycles: usize) {
         let blank = Interval {
