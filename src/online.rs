@@ -492,8 +492,6 @@ pub struct OnlineEstimator {
     /// Arrivals between two checkpoints, at least ([`checkpoint::MIN_INTERVAL`]; tests set
     /// it lower to replay from many checkpoints in small worlds).
     checkpoint_interval: usize,
-    /// Evictions replayed from a checkpoint, and from the start.
-    replays: [usize; 2],
 }
 
 /// Cycles whose conditional sd of γ is below this feed the angle noise scale: their nearest
@@ -638,7 +636,6 @@ impl OnlineEstimator {
             predicted: 0,
             checkpoints: Vec::new(),
             checkpoint_interval: checkpoint::MIN_INTERVAL,
-            replays: [0; 2],
         })
     }
 
@@ -1259,8 +1256,6 @@ impl OnlineEstimator {
         self.counters.estimate_renewals = renewals;
         self.counters.renewal_waits = waits + self.cond_waits;
         self.counters.estimate_relinearisations = self.estimate.relinearisations;
-        self.counters.rebuilds = self.replays[0] + self.replays[1];
-        self.counters.rebuilds_from_checkpoint = self.replays[0];
         self.counters.replayed_arrivals = self.replay_work;
     }
 

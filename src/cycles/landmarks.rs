@@ -264,6 +264,7 @@ impl Landmarks {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::cycles::SignedEdge;
     use smallvec::SmallVec;
 
     fn lcg(state: &mut u64) -> u64 {
@@ -271,6 +272,21 @@ mod tests {
             .wrapping_mul(6_364_136_223_846_793_005)
             .wrapping_add(1_442_695_040_888_963_407);
         *state >> 33
+    }
+
+    /// The weight of `path` (signed edges, `ends` their end nodes), asserting that it walks
+    /// from `s` to `t`.
+    fn walked(path: &[SignedEdge], ends: &[(u32, u32)], w: &[f64], s: usize, t: usize) -> f64 {
+        let (mut at, mut weight) = (s as u32, 0.0);
+        for term in path {
+            let (a, b) = ends[term.edge as usize];
+            let (from, to) = if term.sign > 0 { (a, b) } else { (b, a) };
+            assert_eq!(from, at);
+            at = to;
+            weight += w[term.edge as usize];
+        }
+        assert_eq!(at, t as u32);
+        weight
     }
 
     /// A graph being grown: its adjacency, weights and landmarks, and the search scratch.
@@ -438,7 +454,7 @@ mod tests {
                 assert!((resumed.dist(t) - exact).abs() <= 1e-12 * exact);
                 let mut path = SmallVec::new();
                 resumed.path(&ends, s, t, &mut path);
-                let weight: f64 = path.iter().map(|term| w[term.edge as usize]).sum();
+                let weight = walked(&path, &ends, &w, s, t);
                 assert!((weight - exact).abs() <= 1e-9 * exact);
             }
             settled_plain += plain.order().len();
@@ -454,15 +470,7 @@ mod tests {
             );
             let mut path = SmallVec::new();
             aimed.path(&ends, s, t, &mut path);
-            let (mut at, mut weight) = (s as u32, 0.0);
-            for term in &path {
-                let (a, b) = ends[term.edge as usize];
-                let (from, to) = if term.sign > 0 { (a, b) } else { (b, a) };
-                assert_eq!(from, at);
-                at = to;
-                weight += w[term.edge as usize];
-            }
-            assert_eq!(at, t as u32);
+            let weight = walked(&path, &ends, &w, s, t);
             assert!((weight - exact).abs() <= 1e-9 * exact);
         }
         assert!(

@@ -59,10 +59,8 @@ pub(super) struct Checkpoint {
 impl OnlineEstimator {
     /// Take a checkpoint after this arrival if the policy says so (module docs).
     pub(super) fn checkpoint_if_due(&mut self) {
-        if !(self.config.evict && self.config.quarantine && self.config.screening.family_wise)
-            || self.held.is_empty()
-            || self.warm.is_none()
-        {
+        // (Within replays too: they take the copies of the lineage they start.)
+        if !self.evictions_on() || self.held.is_empty() || self.warm.is_none() {
             return;
         }
         let last = self.checkpoints.last().map_or(0, |c| c.at);
@@ -74,7 +72,8 @@ impl OnlineEstimator {
         }
         let state = Box::new(self.screening_copy());
         if self.checkpoints.len() >= KEPT {
-            self.checkpoints.remove(0);
+            let oldest = self.checkpoints.remove(0);
+            self.worker.retire("so2lin-reorder", oldest);
         }
         self.checkpoints.push(Checkpoint {
             at: self.arrivals,
@@ -86,7 +85,7 @@ impl OnlineEstimator {
     /// its estimate deferred and holding the checkpoint's graph ([`Op::Defer`]; the replay
     /// builds the factors at its end).
     pub(super) fn resume_before(&self, first: usize) -> Option<OnlineEstimator> {
-        let checkpoint = self.checkpoints.iter().rev().find(|c| c.at <= first)?;
+        let checkpoint = self.checkpoint_before(first)?;
         let mut state = checkpoint.state.screening_copy();
         state.model = GammaModel::from_cycles(&state.cycles, &state.sigma2, &state.delta);
         state.estimate = deferred_estimate(&state);
@@ -148,16 +147,18 @@ impl OnlineEstimator {
             predicted: self.predicted,
             checkpoints: Vec::new(),
             checkpoint_interval: self.checkpoint_interval,
-            replays: self.replays,
         }
     }
 
     /// The checkpoint this estimator would replay from for an eviction of arrivals `first`
     /// on: its arrival count (0: from the start).
     pub(super) fn replay_start(&self, first: usize) -> usize {
-        (self.checkpoints.iter().rev())
-            .find(|c| c.at <= first)
-            .map_or(0, |c| c.at)
+        self.checkpoint_before(first).map_or(0, |c| c.at)
+    }
+
+    /// The latest checkpoint at or before arrival `first`.
+    fn checkpoint_before(&self, first: usize) -> Option<&Checkpoint> {
+        self.checkpoints.iter().rev().find(|c| c.at <= first)
     }
 }
 
@@ -228,9 +229,9 @@ mod tests {
                 let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
                 est.checkpoint_interval = interval;
                 for (i, edge) in edges.iter().enumerate() {
-                    let replays = est.replays;
+                    let before = est.counters().rebuilds_from_checkpoint;
                     let step = est.add_edge(*edge).unwrap();
-                    if est.replays[0] == replays[0] {
+                    if est.counters().rebuilds_from_checkpoint == before {
                         continue;
                     }
                     let held: Vec<usize> = est.rejected().iter().map(|r| r.edge).collect();
@@ -260,8 +261,12 @@ mod tests {
             for i in 0..rebuilt.len() {
                 assert_eq!(rebuilt.row(i), with.model.row(i), "seed {seed} row {i}");
             }
-            from_checkpoints += with.replays[0];
-            assert_eq!(without.replays[0], 0, "seed {seed}");
+            from_checkpoints += with.counters().rebuilds_from_checkpoint;
+            assert_eq!(
+                without.counters().rebuilds_from_checkpoint,
+                0,
+                "seed {seed}"
+            );
             for (t, est) in [&with, &without].into_iter().enumerate() {
                 let held = est.rejected();
                 let caught = (held.iter())

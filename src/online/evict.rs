@@ -169,8 +169,9 @@ impl OnlineEstimator {
                 // The re-test changed nothing: this estimator goes on (its factors, and so its
                 // answers, to the bit), from now on as warm as the replay.
                 self.replay_work += self.arrivals;
-                self.replays[1] += 1;
+                self.counters.rebuilds += 1;
                 self.warm = Some(scales);
+                self.worker.retire("so2lin-reorder", fresh);
             }
             Ok(fresh) => self.take_over(fresh, &none, 0, step),
             // (An internal inconsistency, never seen: not tried again at every step.)
@@ -206,8 +207,9 @@ impl OnlineEstimator {
         step: &mut Step,
     ) {
         fresh.replay_work = self.replay_work + (self.arrivals - start);
-        fresh.replays = self.replays;
-        fresh.replays[usize::from(start == 0)] += 1;
+        fresh.counters.rebuilds = self.counters.rebuilds + 1;
+        fresh.counters.rebuilds_from_checkpoint =
+            self.counters.rebuilds_from_checkpoint + usize::from(start > 0);
         // What the replay changed besides the evictions: loop closures held before and
         // accepted by the replay (their failures were due to an evicted edge), and the
         // reverse.
@@ -222,7 +224,10 @@ impl OnlineEstimator {
                 .filter(|(i, _)| !self.held.contains_key(i) && !evicted.contains_key(i))
                 .map(|(_, h)| h.rejected),
         );
-        *self = fresh;
+        // The replaced estimator (its factors, thousands of rows) is freed on the worker,
+        // not in this step.
+        let old = std::mem::replace(self, fresh);
+        self.worker.retire("so2lin-reorder", old);
     }
 
     /// The noise scale a quarantine test divides its statistic by: the angle scale for
@@ -245,10 +250,13 @@ impl OnlineEstimator {
     /// the family-wise setting (the default; at a per-cycle level the tests are too loose to
     /// evict on), and not within a replay.
     pub(super) fn evicts(&self) -> bool {
-        self.config.evict
-            && self.config.quarantine
-            && self.config.screening.family_wise
-            && !self.replaying
+        self.evictions_on() && !self.replaying
+    }
+
+    /// The settings under which accepted loop closures are evicted: quarantine and evictions
+    /// on, family-wise screening.
+    pub(super) fn evictions_on(&self) -> bool {
+        self.config.evict && self.config.quarantine && self.config.screening.family_wise
     }
 
     /// The level at which an accepted loop closure is evicted, and a failed cycle counts
@@ -425,12 +433,14 @@ impl OnlineEstimator {
         // now or before) the cycle count of their re-test.
         let mut arrivals: BTreeMap<usize, (Edge, Option<(RejectedEdge, usize)>)> = BTreeMap::new();
         for (e, edge) in self.graph.edges().iter().enumerate() {
-            arrivals.insert(self.input_of[e] as usize, (*edge, None));
+            let i = self.input_of[e] as usize;
+            if i >= start {
+                arrivals.insert(i, (*edge, None));
+            }
         }
-        for (&i, h) in self.held.iter().chain(evicted) {
+        for (&i, h) in (self.held.range(start..)).chain(evicted.range(start..)) {
             arrivals.insert(i, (h.edge, h.evicted.then_some((h.rejected, h.due))));
         }
-        let arrivals = arrivals.split_off(&start);
         fresh.replaying = true;
         fresh.reuse_paths = self.reuse_paths;
         fresh.hints = (self.reuse_paths).then(|| replay::Hints::new(self.paths.clone()));
