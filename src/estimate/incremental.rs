@@ -28,6 +28,20 @@
 //! Written by hand because no maintained crate offers a sparse QR/Cholesky factor that can be
 //! grown, down-dated and read in place one row at a time (faer's sparse Cholesky refactors).
 
+/// An entry of a row of R: `(position, value)`, packed in 12 bytes (a rotation's cost is
+/// mostly moving rows through the caches; a `(u32, f64)` tuple takes 16).
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C, packed(4))]
+struct Entry(u32, f64);
+
+impl Entry {
+    /// `(position, value)` as a tuple (which a pattern may bind by reference).
+    #[inline]
+    fn pair(&self) -> (u32, f64) {
+        (self.0, self.1)
+    }
+}
+
 /// No position (variable unknown).
 const NONE: u32 = u32::MAX;
 
@@ -55,15 +69,15 @@ pub(crate) struct SqrtInfo<const K: usize> {
     diag: Vec<f64>,
     /// Off-diagonal entries of each row of R: `(position, value)`, positions ascending and
     /// greater than the row's own.
-    rows: Vec<Vec<(u32, f64)>>,
+    rows: Vec<Vec<Entry>>,
     d: Vec<[f64; K]>,
     nnz: usize,
     /// Entries of R read or written by rotations and forward solves ([`Self::take_work`]).
     work: u64,
     // Scratch (kept to avoid allocations per step).
-    w: Vec<(u32, f64)>,
-    w_next: Vec<(u32, f64)>,
-    spare_row: Vec<(u32, f64)>,
+    w: Vec<Entry>,
+    w_next: Vec<Entry>,
+    spare_row: Vec<Entry>,
     x: Vec<f64>,
     path: Vec<u32>,
     /// `(position, g)` for the last row added: `d_k` moves by `g Δβ` when that row's
@@ -83,7 +97,7 @@ pub(crate) struct SqrtInfo<const K: usize> {
 #[derive(Clone, Debug, Default)]
 struct Undo<const K: usize> {
     rows: Vec<(u32, u32, u32, f64, [f64; K])>,
-    entries: Vec<(u32, f64)>,
+    entries: Vec<Entry>,
     nnz: usize,
     work: u64,
     gains: Vec<(u32, f64)>,
@@ -187,12 +201,12 @@ impl<const K: usize> SqrtInfo<K> {
         for &(v, a) in entries {
             let p = self.pos_of[v];
             debug_assert!(p != NONE, "unknown variable {v}");
-            match self.w.iter_mut().find(|(q, _)| *q == p) {
+            match self.w.iter_mut().find(|Entry(q, _)| *q == p) {
                 Some(e) => e.1 += a,
-                None => self.w.push((p, a)),
+                None => self.w.push(Entry(p, a)),
             }
         }
-        self.w.sort_unstable_by_key(|&(p, _)| p);
+        self.w.sort_unstable_by_key(|&Entry(p, _)| p);
     }
 
     /// Add the row `Σ a_v x_v = β` (Givens rotations): what the rotations leave.
@@ -300,7 +314,7 @@ impl<const K: usize> SqrtInfo<K> {
             if head >= w.len() {
                 break Ok((beta, gain));
             }
-            let (k, wk) = w[head];
+            let Entry(k, wk) = w[head];
             let k = k as usize;
             self.work += (1 + self.rows[k].len() + w.len() - head) as u64;
             // The copy of row k as it was, for a tried row's undo: also where the in-place
@@ -361,12 +375,13 @@ impl<const K: usize> SqrtInfo<K> {
                 let mut j = head + 1;
                 let mut inside = false;
                 for e in row.iter_mut() {
-                    let wj = match w.get(j) {
-                        Some(&(pj, v)) if pj == e.0 => {
+                    let pe = e.0;
+                    let wj = match w.get(j).map(Entry::pair) {
+                        Some((pj, v)) if pj == pe => {
                             j += 1;
                             v
                         }
-                        Some(&(pj, _)) if pj < e.0 => {
+                        Some((pj, _)) if pj < pe => {
                             inside = true;
                             break;
                         }
@@ -376,16 +391,16 @@ impl<const K: usize> SqrtInfo<K> {
                     e.1 = c * rkj + s * wj;
                     let wn = c * wj - s * rkj;
                     if wn != 0.0 {
-                        next.push((e.0, wn));
+                        next.push(Entry(e.0, wn));
                     }
                 }
                 if !inside {
-                    for &(p, wj) in &w[j..] {
+                    for &Entry(p, wj) in &w[j..] {
                         let rkj = 0.0;
-                        row.push((p, c * rkj + s * wj));
+                        row.push(Entry(p, c * rkj + s * wj));
                         let wn = c * wj - s * rkj;
                         if wn != 0.0 {
-                            next.push((p, wn));
+                            next.push(Entry(p, wn));
                         }
                     }
                     self.nnz += w.len() - j;
@@ -413,25 +428,25 @@ impl<const K: usize> SqrtInfo<K> {
             row.clear();
             let (mut i, mut j) = (0, head + 1);
             while i < old.len() || j < w.len() {
-                let (p, rkj, wj) = match (old.get(i), w.get(j)) {
-                    (Some(&(pa, a)), Some(&(pb, b))) if pa == pb => {
+                let (p, rkj, wj) = match (old.get(i).map(Entry::pair), w.get(j).map(Entry::pair)) {
+                    (Some((pa, a)), Some((pb, b))) if pa == pb => {
                         i += 1;
                         j += 1;
                         (pa, a, b)
                     }
-                    (Some(&(pa, a)), Some(&(pb, _))) if pa < pb => {
+                    (Some((pa, a)), Some((pb, _))) if pa < pb => {
                         i += 1;
                         (pa, a, 0.0)
                     }
-                    (Some(_), Some(&(pb, b))) => {
+                    (Some(_), Some((pb, b))) => {
                         j += 1;
                         (pb, 0.0, b)
                     }
-                    (Some(&(pa, a)), None) => {
+                    (Some((pa, a)), None) => {
                         i += 1;
                         (pa, a, 0.0)
                     }
-                    (None, Some(&(pb, b))) => {
+                    (None, Some((pb, b))) => {
                         j += 1;
                         (pb, 0.0, b)
                     }
@@ -443,9 +458,9 @@ impl<const K: usize> SqrtInfo<K> {
                 } else {
                     (c * rkj + s * wj, c * wj - s * rkj)
                 };
-                row.push((p, rn));
+                row.push(Entry(p, rn));
                 if wn != 0.0 {
-                    next.push((p, wn));
+                    next.push(Entry(p, wn));
                 }
             }
             let dk = &mut self.d[k];
@@ -500,7 +515,7 @@ impl<const K: usize> SqrtInfo<K> {
         f.rows = self
             .rows
             .iter()
-            .map(|row| row.iter().map(|&(p, v)| (p, scale * v)).collect())
+            .map(|row| row.iter().map(|&Entry(p, v)| Entry(p, scale * v)).collect())
             .collect();
         f.d = self
             .d
@@ -535,7 +550,7 @@ impl<const K: usize> SqrtInfo<K> {
             if head >= w.len() {
                 break;
             }
-            let (k, ak) = w[head];
+            let Entry(k, ak) = w[head];
             let k = k as usize;
             self.work += (1 + self.rows[k].len() + w.len() - head) as u64;
             let y = ak / self.diag[k];
@@ -545,32 +560,32 @@ impl<const K: usize> SqrtInfo<K> {
             let row = &self.rows[k];
             let (mut i, mut j) = (0, head + 1);
             while i < row.len() || j < w.len() {
-                let (p, v) = match (row.get(i), w.get(j)) {
-                    (Some(&(pa, a)), Some(&(pb, b))) if pa == pb => {
+                let (p, v) = match (row.get(i).map(Entry::pair), w.get(j).map(Entry::pair)) {
+                    (Some((pa, a)), Some((pb, b))) if pa == pb => {
                         i += 1;
                         j += 1;
                         (pa, b - a * y)
                     }
-                    (Some(&(pa, a)), Some(&(pb, _))) if pa < pb => {
+                    (Some((pa, a)), Some((pb, _))) if pa < pb => {
                         i += 1;
                         (pa, -a * y)
                     }
-                    (Some(_), Some(&(pb, b))) => {
+                    (Some(_), Some((pb, b))) => {
                         j += 1;
                         (pb, b)
                     }
-                    (Some(&(pa, a)), None) => {
+                    (Some((pa, a)), None) => {
                         i += 1;
                         (pa, -a * y)
                     }
-                    (None, Some(&(pb, b))) => {
+                    (None, Some((pb, b))) => {
                         j += 1;
                         (pb, b)
                     }
                     (None, None) => unreachable!(),
                 };
                 if v != 0.0 {
-                    next.push((p, v));
+                    next.push(Entry(p, v));
                 }
             }
             std::mem::swap(&mut w, &mut next);
@@ -597,7 +612,10 @@ impl<const K: usize> SqrtInfo<K> {
         let n = self.len();
         let mut x = vec![0.0; n];
         for p in (0..n).rev() {
-            let s: f64 = self.rows[p].iter().map(|&(j, v)| v * x[j as usize]).sum();
+            let s: f64 = self.rows[p]
+                .iter()
+                .map(|&Entry(j, v)| v * x[j as usize])
+                .sum();
             x[p] = (self.d[p][rhs] - s) / self.diag[p];
         }
         let mut out = vec![0.0; self.pos_of.len()];
@@ -631,8 +649,8 @@ impl<const K: usize> SqrtInfo<K> {
         let mut k = p;
         loop {
             self.path.push(k as u32);
-            match self.rows[k].first() {
-                Some(&(parent, _)) => k = parent as usize,
+            match self.rows[k].first().map(Entry::pair) {
+                Some((parent, _)) => k = parent as usize,
                 None => break,
             }
         }
@@ -646,7 +664,7 @@ impl<const K: usize> SqrtInfo<K> {
             let k = k as usize;
             let s: f64 = self.rows[k]
                 .iter()
-                .map(|&(j, a)| a * self.x[j as usize])
+                .map(|&Entry(j, a)| a * self.x[j as usize])
                 .sum();
             self.x[k] = (self.d[k][q] - s) / self.diag[k];
         }
@@ -685,8 +703,8 @@ impl<const K: usize> SqrtInfo<K> {
                 while !s.mark[k] {
                     s.mark[k] = true;
                     s.reach.push(k as u32);
-                    match self.rows[k].first() {
-                        Some(&(parent, _)) => k = parent as usize,
+                    match self.rows[k].first().map(Entry::pair) {
+                        Some((parent, _)) => k = parent as usize,
                         None => break,
                     }
                 }
@@ -699,7 +717,7 @@ impl<const K: usize> SqrtInfo<K> {
             let yk = s.w[k].map(|v| v / self.diag[k]);
             s.w[k] = [0.0; 3];
             s.mark[k] = false;
-            for &(j, a) in &self.rows[k] {
+            for &Entry(j, a) in &self.rows[k] {
                 let wj = &mut s.w[j as usize];
                 for q in 0..3 {
                     wj[q] -= a * yk[q];
@@ -731,7 +749,7 @@ impl<const K: usize> SqrtInfo<K> {
             for v in dk.iter_mut() {
                 *v /= self.diag[k];
             }
-            for &(j, a) in &self.rows[k] {
+            for &Entry(j, a) in &self.rows[k] {
                 for q in 0..K {
                     g[j as usize][q] -= a * dk[q];
                 }
@@ -831,16 +849,16 @@ impl<const K: usize> SqrtInfo<K> {
         // Column j of L is row j of R: its diagonal, then the positions below it.
         let (col_ptr, row_idx) = (symbolic.col_ptr(), symbolic.row_idx());
         for j in 0..n {
-            let mut row: Vec<(u32, f64)> = Vec::with_capacity(col_ptr[j + 1] - col_ptr[j]);
+            let mut row: Vec<Entry> = Vec::with_capacity(col_ptr[j + 1] - col_ptr[j]);
             for t in col_ptr[j]..col_ptr[j + 1] {
                 let i = row_idx[t];
                 if i == j {
                     f.diag[j] = values[t];
                 } else if values[t] != 0.0 {
-                    row.push((i as u32, values[t]));
+                    row.push(Entry(i as u32, values[t]));
                 }
             }
-            row.sort_unstable_by_key(|&(p, _)| p);
+            row.sort_unstable_by_key(|&Entry(p, _)| p);
             f.nnz += row.len();
             f.rows[j] = row;
         }
