@@ -1218,6 +1218,15 @@ mod tests {
         assert!(SqrtInfo::<1>::factored(&[0, 1, 2], rows.into_iter()).is_none());
     }
 
+    /// A row entry takes 12 bytes (a `(u32, f64)` tuple took 16: the rows, and the copies the
+    /// rotations make of them, are a quarter larger with it).
+    #[test]
+    fn row_entries_are_packed() {
+        assert_eq!(std::mem::size_of::<Entry>(), 12);
+        let e = Entry(7, 0.25);
+        assert_eq!(e.pair(), (7, 0.25));
+    }
+
     #[test]
     fn fill_reducing_order_is_a_permutation_with_last_at_the_end() {
         let edges: Vec<(usize, usize)> = (1..50)
