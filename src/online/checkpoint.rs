@@ -88,7 +88,7 @@ impl OnlineEstimator {
         let checkpoint = self.checkpoint_before(first)?;
         let mut state = checkpoint.state.screening_copy();
         state.model = GammaModel::from_cycles(&state.cycles, &state.sigma2, &state.delta);
-        state.estimate = deferred_estimate(&state);
+        state.defer_estimate();
         Some(state)
     }
 
@@ -162,28 +162,26 @@ impl OnlineEstimator {
     }
 }
 
-/// A deferred estimate holding `state`'s graph: its nodes and every edge's rows at the
-/// current wraps, as the steps that built the graph would have left them within a replay.
-fn deferred_estimate(state: &OnlineEstimator) -> Estimate {
-    let mut estimate = Estimate::default();
-    estimate.push(Op::Defer);
-    let mut nodes = 0u32;
-    for (e, &(a, b)) in state.graph.endpoints().iter().enumerate() {
-        let (e, a, b) = (e as u32, a as u32, b as u32);
-        while nodes <= a.max(b) {
-            estimate.push(Op::Node);
-            nodes += 1;
+impl OnlineEstimator {
+    /// Replace the estimate by a deferred one holding this graph: its nodes and every edge's
+    /// operations at the current wraps ([`Self::push_edge`]), as the steps that built the graph
+    /// would have left them within a replay.
+    fn defer_estimate(&mut self) {
+        self.estimate = Estimate::default();
+        self.estimate.push(Op::Defer);
+        let mut nodes = 0;
+        for e in 0..self.graph.edge_count() {
+            let (a, b) = self.graph.endpoints()[e];
+            for _ in nodes..=a.max(b) {
+                self.estimate.push(Op::Node);
+            }
+            nodes = nodes.max(a.max(b) + 1);
+            self.push_edge(e, a, b, &[], false);
         }
-        let y = state.wrapped(e as usize);
-        estimate.push(Op::Edge { e, a, b, y });
-        estimate.push(Op::Position { e, a, b, y });
-        estimate.push(Op::Step);
+        for _ in nodes..self.graph.node_count() {
+            self.estimate.push(Op::Node);
+        }
     }
-    while (nodes as usize) < state.graph.node_count() {
-        estimate.push(Op::Node);
-        nodes += 1;
-    }
-    estimate
 }
 
 impl Checkpoint {

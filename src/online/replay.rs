@@ -151,12 +151,6 @@ pub(crate) mod tests {
         assert!(hints.cycle(3, &own, 2).is_none());
     }
 
-    /// Streams whose evictions replay (simulated worlds, declared noise 16× too wide, 40 random
-    /// false loop closures) decide the same, to the bit, whether their replays reuse the
-    /// failed paths or search every cycle again — where the least-σ² path is unique: every
-    /// edge's declared noise is scaled by its own factor in [1, 1.01) (the simulator gives
-    /// every edge the same noise, so paths of equal σ² abound, and which of them a search picks
-    /// depends on how it searches: module docs).
     /// A simulated 1 000-pose world (seed `700 + seed`) with 40 random false loop closures and
     /// every edge's declared noise 16 times too wide, so that evictions happen; with `own`,
     /// each edge's noise is scaled by its own factor in [1, 1.01) as well (unique least-σ²
@@ -190,6 +184,12 @@ pub(crate) mod tests {
         (edges, bad.false_edges.iter().map(|f| f.edge).collect())
     }
 
+    /// Streams whose evictions replay (simulated worlds, declared noise 16× too wide, 40 random
+    /// false loop closures) decide the same, to the bit, whether their replays reuse the
+    /// failed paths or search every cycle again — where the least-σ² path is unique: every
+    /// edge's declared noise is scaled by its own factor in [1, 1.01) (the simulator gives
+    /// every edge the same noise, so paths of equal σ² abound, and which of them a search picks
+    /// depends on how it searches: module docs).
     #[test]
     fn a_replay_that_reuses_paths_decides_as_one_that_searches() {
         use crate::online::{OnlineConfig, OnlineEstimator};
