@@ -146,6 +146,8 @@ fn solve_json_ranks_hypotheses_and_writes_the_refined_graph() {
         .iter(),
     );
     let hyps = v["hypotheses"].as_array().unwrap();
+    // The screening's outcome as `screen --json` and `stream --json` write it.
+    assert_eq!(v["outcome"], "complete");
     assert_eq!(
         hyps.len() as u64,
         v["hypotheses_screened"].as_u64().unwrap()

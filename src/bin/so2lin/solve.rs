@@ -158,7 +158,7 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
             "edges": graph.edge_count(),
             "basis": r.basis.kind,
             "hypotheses_screened": r.hypotheses.len(),
-            "outcome": format!("{:?}", r.outcome),
+            "outcome": r.outcome,
             "hypotheses": hyps,
             "best": solved.solutions.first().map(|(i, _)| i),
             "odometry": baseline.as_ref().map(|(b, s)| odometry_json(b, *s)),
