@@ -33,7 +33,7 @@
 //! On city10000 in robot order, the newest pose read after every step, this took the steps
 //! from 1.50–1.54 s to 1.10–1.20 s and the worst step from 4.1–5.6 ms to 1.3–2.0 ms (no P_UU
 //! renewal is waited for when P_UU does not grow; measured before the estimate's renewals were
-//! collected later, README "Measured on 2026-12-03").
+//! collected later; `benches/MEASUREMENTS.md`, "Measured on 2026-12-03").
 
 use std::f64::consts::TAU;
 
