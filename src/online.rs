@@ -134,11 +134,13 @@ mod estimate;
 mod evict;
 mod laplacian;
 mod predict;
+mod quarantine;
 mod renewal;
 mod replay;
 
 use estimate::{Estimate, Op};
 use evict::Suspect;
+use quarantine::Held;
 
 use crate::batch::{self, BatchResult};
 use crate::cycles::{BasisKind, Cycle, CycleBasis, IncrementalBasis};
@@ -498,61 +500,10 @@ pub struct OnlineEstimator {
 /// integer is their value (a genuine residual of half a turn would be 5 sd away).
 const ANGLE_SCALE_MAX_SD: f64 = 0.1;
 
-/// A quarantined loop closure.
-#[derive(Clone, Copy, Debug)]
-struct Held {
-    edge: Edge,
-    rejected: RejectedEdge,
-    /// The cycle count of its next re-test.
-    due: usize,
-    /// Whether it was evicted (accepted, then quarantined): a replay keeps it in quarantine
-    /// until its re-test (re-tested at its arrival, it would pass as it first did, and be
-    /// accepted again).
-    evicted: bool,
-    /// The level of the test it failed at its arrival (the per-cycle α for an evicted edge).
-    level: f64,
-    /// The noise scale of that test when it failed ([`OnlineEstimator::test_scale`]).
-    scale: f64,
-    /// Whether it failed its arrival's test by far ([`failed_by_far`]): its re-tests are 8×
-    /// the cycles apart, not 2×.
-    far: bool,
-}
-
 /// Name of the angle test in [`RejectedEdge::test`]: the statistic is the residual in σ.
 pub const ANGLE_TEST: &str = "cycle_angle";
 /// Name of the translation test in [`RejectedEdge::test`]: the statistic is χ²₂.
 pub const TRANSLATION_TEST: &str = "cycle_translation";
-
-/// The cycle count at which a loop closure quarantined when `cycles` had closed is re-tested:
-/// twice as many, and at least 32 more; eight times as many when it failed by far (its χ²
-/// above [`FAR`] times the threshold: a random false edge, whose re-tests would cost one
-/// search of the graph each for nothing; a genuine edge that failed by far because its path
-/// ran through an accepted false edge is replayed when the examination evicts that edge).
-fn retest_after(cycles: usize, far: bool) -> usize {
-    let factor = if far { 8 } else { 2 };
-    cycles.saturating_mul(factor).max(cycles + 32)
-}
-
-/// Whether a rejection's χ² (the angle residual squared) was above [`FAR`] times its
-/// threshold.
-fn failed_by_far(rejected: &RejectedEdge) -> bool {
-    let ratio = rejected.statistic / rejected.threshold;
-    let excess = if rejected.test == ANGLE_TEST {
-        ratio * ratio
-    } else {
-        ratio
-    };
-    excess > FAR
-}
-
-/// A test failed by far: its χ² (the angle residual squared) above this multiple of the
-/// threshold ([`retest_after`]). The clean w20000.txt's long loops (5 000–10 000 poses) fail
-/// at 4.0–5.7× when they arrive on paths longer than the graph later offers, and pass on the
-/// final graph: at 4 they waited for 8× the cycles, which that file never reaches, and 164 of
-/// them ended its stream held; at 8 all come back. Of the false edges held at the end of 24
-/// streams of M3500 with 1000 false edges, 91 % had failed above 8× (their costly re-tests
-/// stay rare), and those streams' decisions did not change.
-const FAR: f64 = 8.0;
 
 /// A renewal of the P_UU factor built beside the live one ([`OnlineEstimator::maybe_reorder`]).
 struct CondRenewal {
@@ -904,98 +855,6 @@ impl OnlineEstimator {
             quarantined: Vec::new(),
             readmitted: Vec::new(),
         }))
-    }
-
-    /// Quarantine a loop closure that failed its test at arrival; it is re-tested when the
-    /// cycles have doubled ([`Self::retest_due`]).
-    fn hold(&mut self, edge: Edge, rejected: RejectedEdge, level: f64) -> Step {
-        let due = retest_after(self.counters.cycles, failed_by_far(&rejected));
-        self.hold_until(self.held(edge, rejected, due, false, level))
-    }
-
-    /// Quarantine `held` ([`Self::hold`], or a replay keeping an evicted edge).
-    fn hold_until(&mut self, held: Held) -> Step {
-        let rejected = held.rejected;
-        self.keep_held(held);
-        Step {
-            edge: rejected.edge,
-            kind: StepKind::Quarantined,
-            rescreened: Vec::new(),
-            quarantined: vec![rejected],
-            readmitted: Vec::new(),
-        }
-    }
-
-    /// Keep `held` in quarantine until its re-test ([`Held::due`]), indexed by that date.
-    fn keep_held(&mut self, held: Held) {
-        let input = held.rejected.edge;
-        self.due.insert((held.due, input));
-        self.held.insert(input, held);
-    }
-
-    /// Re-test the quarantined loop closures whose time has come (module docs: re-admission),
-    /// through the path a new loop closure takes, at the level of [`Held::level`]. Re-admitted edges
-    /// and the cycles their determination re-screened are added to `step`.
-    fn retest_due(&mut self, step: &mut Step) {
-        while let Some(&(due, input)) = self.due.first() {
-            if due > self.counters.cycles {
-                break;
-            }
-            self.due.pop_first();
-            let Some(held) = self.held.remove(&input) else {
-                continue;
-            };
-            let (Some(a), Some(b)) = (
-                self.graph.node_index(held.edge.from()),
-                self.graph.node_index(held.edge.to()),
-            ) else {
-                continue;
-            };
-            // At the per-cycle level α; at the arrival's level when the data have shown the
-            // declared noise too tight since (the failed test's scale risen above 1 and above
-            // what it was): the failure may be the noise model's, not the edge's (module docs).
-            let scale = self.test_scale(held.rejected.test);
-            let level = if scale > held.scale.max(1.0) {
-                held.level
-            } else {
-                self.config.screening.alpha
-            };
-            // A re-test that fails internally leaves the edge in quarantine: this step's own
-            // edge is already in, and nothing of the held edge's is lost.
-            let retest = self
-                .add_chord(input, held.edge, a, b, level)
-                .unwrap_or(Err(held.rejected));
-            match retest {
-                Ok(s) => {
-                    self.counters.readmitted += 1;
-                    step.readmitted.push(input);
-                    for r in s.rescreened {
-                        match step.rescreened.iter_mut().find(|x| x.cycle == r.cycle) {
-                            Some(x) => {
-                                *x = Rescreen {
-                                    before: x.before,
-                                    ..r
-                                }
-                            }
-                            None => step.rescreened.push(r),
-                        }
-                    }
-                    step.rescreened.sort_by_key(|x| x.cycle);
-                }
-                Err(rejected) => {
-                    // Re-tested after as many cycles as its arrival's failure set: a failure
-                    // by far at the strict per-cycle level is not one at its own level.
-                    let due = retest_after(self.counters.cycles, held.far);
-                    // An evicted edge that fails its re-test stays an evicted edge.
-                    self.keep_held(Held {
-                        rejected,
-                        due,
-                        scale: self.test_scale(rejected.test),
-                        ..held
-                    });
-                }
-            }
-        }
     }
 
     /// `δ_e − 2π k_e`: the unwrapped measurement of edge e.

@@ -23,10 +23,8 @@
 use std::collections::BTreeMap;
 
 use super::estimate::Op;
-use super::{
-    ANGLE_TEST, Held, NONE, OnlineError, OnlineEstimator, Step, TRANSLATION_TEST, failed_by_far,
-    replay, retest_after,
-};
+use super::quarantine::{Held, failed_by_far, retest_after};
+use super::{NONE, OnlineError, OnlineEstimator, Step, TRANSLATION_TEST, replay};
 use crate::batch::RejectedEdge;
 use crate::closure;
 use crate::cycles::Cycle;
@@ -110,27 +108,6 @@ impl OnlineEstimator {
         let due = retest_after(self.counters.cycles, failed_by_far(&rejected));
         let level = self.config.screening.alpha;
         (input, self.held(edge, rejected, due, true, level))
-    }
-
-    /// `edge` quarantined after failing `rejected` (its test at `level`), re-tested at cycle
-    /// count `due`, with the failed test's current noise scale.
-    pub(super) fn held(
-        &self,
-        edge: Edge,
-        rejected: RejectedEdge,
-        due: usize,
-        evicted: bool,
-        level: f64,
-    ) -> Held {
-        Held {
-            edge,
-            rejected,
-            due,
-            evicted,
-            level,
-            scale: self.test_scale(rejected.test),
-            far: failed_by_far(&rejected),
-        }
     }
 
     /// Quarantine the accepted loop closures `evicted` (by input index) and rebuild the
@@ -228,16 +205,6 @@ impl OnlineEstimator {
         // not in this step.
         let old = std::mem::replace(self, fresh);
         self.worker.retire("so2lin-reorder", old);
-    }
-
-    /// The noise scale a quarantine test divides its statistic by: the angle scale for
-    /// [`ANGLE_TEST`], the translation scale for [`TRANSLATION_TEST`].
-    pub(super) fn test_scale(&self, test: &str) -> f64 {
-        if test == ANGLE_TEST {
-            self.angle_scale()
-        } else {
-            self.translation_scale()
-        }
     }
 
     /// Whether one more replay, of the arrivals from `start` on, stays within

@@ -46,7 +46,7 @@ use crate::screening::Screener;
 impl OnlineEstimator {
     /// Conditional moments of the new cycle t (chord `edge`, a → b, term 0 of `cycle`) given
     /// the determined cycles, from the estimate's factor (module docs: one factor), with the
-    /// chord's heading row rotated in tentatively ([`Estimate::try_chord`]): `None` when P_UU
+    /// chord's heading row rotated in tentatively ([`Estimate::try_chord`](super::estimate::Estimate::try_chord)): `None` when P_UU
     /// must give them (an ambiguous cycle's chord is in the factor with a guessed wrap, the
     /// factors are deferred, or the edge would split them).
     pub(super) fn predict(
