@@ -540,3 +540,33 @@ fn bases_json_lists_every_basis_with_the_documented_fields() {
             .contains("max-seconds")
     );
 }
+
+/// Every command that screens says when its second screening stopped short, in the same
+/// words: a capped enumeration shows the bootstrapped answer, not a screened set, and `solve`
+/// (which prints no success bound) must not hide it. One hypothesis found at a cap of one is
+/// "too many": the enumeration cannot know there is no second.
+#[test]
+fn a_second_screening_cut_short_is_said_by_every_command() {
+    let file = simulated(
+        "capped.g2o",
+        &["--poses", "2000", "--seed", "1", "--sigma-theta", "0.3"],
+    );
+    let words = "second screening stopped: too many hypotheses (1 ≥ cap 1)";
+    for cmd in ["screen", "stream", "solve"] {
+        let out = so2lin()
+            .args([cmd, file.to_str().unwrap(), "--max-hypotheses", "1"])
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{cmd}");
+        let text = String::from_utf8(out.stdout).unwrap();
+        assert!(text.contains(words), "{cmd}: {text}");
+    }
+    let v = run_json([
+        "screen",
+        file.to_str().unwrap(),
+        "--json",
+        "--max-hypotheses",
+        "1",
+    ]);
+    assert_eq!(v["outcome"]["too_many"]["limit"], "hypotheses");
+}

@@ -763,6 +763,39 @@ pub(crate) fn accepted_words(accepted: usize, rejected: usize) -> String {
     }
 }
 
+/// What the second screening of `r` did, in words (one sentence for every command): `None`
+/// when it completed, else why it stopped and that the answer shown is the bootstrapped one.
+pub(crate) fn second_screening_words(
+    r: &so2lin::batch::BatchResult,
+    joint_level: f64,
+) -> Option<String> {
+    use so2lin::screening::{Limit, SecondOutcome};
+    const SHOWING: &str = "showing the bootstrapped answer, not a screened set";
+    match r.outcome {
+        SecondOutcome::Complete => None,
+        SecondOutcome::TooMany(t) => Some(match t.limit {
+            Limit::Hypotheses => format!(
+                "second screening stopped: too many hypotheses ({} ≥ cap {}); {SHOWING}",
+                t.found, t.cap
+            ),
+            Limit::Visits => format!(
+                "second screening stopped: its search budget of {} partial vectors was exhausted with {} found; {SHOWING}",
+                t.visited, t.found
+            ),
+            Limit::Memory => format!(
+                "second screening stopped: the memory bound of {} MiB was reached with {} found; {SHOWING}",
+                so2lin::screening::MAX_ENUMERATION_BYTES >> 20,
+                t.found
+            ),
+        }),
+        SecondOutcome::NoneInside => Some(format!(
+            "second screening: no candidate vector of the {} ambiguous cycles passes the joint χ² test at level {} (the measurements disagree with their declared noise, or hold an outlier); {SHOWING}",
+            r.ambiguous.len(),
+            joint_level
+        )),
+    }
+}
+
 pub(crate) fn plural(n: usize, one: &str, many: &str) -> String {
     format!("{n} {}", if n == 1 { one } else { many })
 }
@@ -969,11 +1002,8 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
     for c in &r.inconsistent {
         println!("  {c}");
     }
-    if matches!(r.outcome, so2lin::batch::SecondOutcome::NoneInside) {
-        println!(
-            "  second screening: no candidate vector passes the joint χ² test at level {}",
-            cfg.screening.joint_level()
-        );
+    if let Some(words) = second_screening_words(&r, cfg.screening.joint_level()) {
+        println!("  {words}");
     }
     println!(
         "  success probability ≥ {:.6} (integer bootstrapping; assumes the declared noise and all {} edges accepted, none rejected)",

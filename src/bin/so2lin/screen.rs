@@ -10,7 +10,6 @@ use so2lin::batch::{self, BatchConfig, BatchResult, Iteration, SecondOutcome};
 use so2lin::estimate::OrientationEstimator;
 use so2lin::graph::PoseGraph;
 use so2lin::io::InfoOrder;
-use so2lin::screening::Limit;
 
 /// Options of the `screen` command.
 pub struct ScreenArgs<'a> {
@@ -160,26 +159,11 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
     );
     print_table(&r.first);
     match r.outcome {
-        SecondOutcome::TooMany(t) => match t.limit {
-            Limit::Hypotheses => println!(
-                "second screening: too many hypotheses: {} ≥ cap {} (showing the bootstrapped answer)",
-                t.found, t.cap
-            ),
-            Limit::Visits => println!(
-                "second screening: too many hypotheses: search budget of {} partial vectors exhausted with {} found (showing the bootstrapped answer)",
-                t.visited, t.found
-            ),
-            Limit::Memory => println!(
-                "second screening: too many hypotheses: memory bound of {} MiB reached with {} found (showing the bootstrapped answer)",
-                so2lin::screening::MAX_ENUMERATION_BYTES >> 20,
-                t.found
-            ),
-        },
-        SecondOutcome::NoneInside => println!(
-            "second screening: no candidate vector of the {} ambiguous cycles passes the joint χ² test at level {} (the measurements disagree with their declared noise, or hold an outlier); showing the bootstrapped answer",
-            r.ambiguous.len(),
-            s.joint_level()
-        ),
+        SecondOutcome::TooMany(_) | SecondOutcome::NoneInside => {
+            if let Some(words) = crate::second_screening_words(&r, s.joint_level()) {
+                println!("{words}");
+            }
+        }
         SecondOutcome::Complete if r.second.is_empty() => {
             println!(
                 "second screening: nothing to fix ({} ambiguous cycles)",

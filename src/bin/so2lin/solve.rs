@@ -172,15 +172,18 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
         return Ok(());
     }
     println!(
-        "{}: {} nodes, {} edges; {:?} basis, {} hypotheses after screening ({:.1} ms read, {:.1} ms screening)",
+        "{}: {} nodes, {} edges; {:?} basis, {} after screening ({:.1} ms read, {:.1} ms screening)",
         args.file.display(),
         graph.node_count(),
         graph.edge_count(),
         r.basis.kind,
-        r.hypotheses.len(),
+        crate::plural(r.hypotheses.len(), "hypothesis", "hypotheses"),
         1e3 * read_seconds,
         1e3 * solved.screen_seconds
     );
+    if let Some(words) = crate::second_screening_words(r, args.config.screening.joint_level()) {
+        println!("{words}");
+    }
     println!(
         "costs: Σ_e r_eᵀ Ω_e r_e with r_e the {} of Z⁻¹ X_i⁻¹ X_j",
         match args.refine.residual {

@@ -274,15 +274,8 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             c.rebuilds, c.rebuilds_from_checkpoint, c.replayed_arrivals
         );
     }
-    let second = match result.outcome {
-        so2lin::screening::SecondOutcome::Complete => "second screening complete",
-        so2lin::screening::SecondOutcome::NoneInside => {
-            "no candidate vector passed the joint test: showing the bootstrapped answer"
-        }
-        so2lin::screening::SecondOutcome::TooMany(_) => {
-            "too many hypotheses: showing the bootstrapped answer"
-        }
-    };
+    let second = crate::second_screening_words(&result, args.config.screening.joint_level())
+        .unwrap_or_else(|| "second screening complete".into());
     println!(
         "finish: {} determined, {} ambiguous, {} ({second})",
         result.determined,
