@@ -599,16 +599,16 @@ const LEAVE_OUT_TRIES: usize = 5;
 const LEAVE_OUT_ROUNDS: usize = 8;
 /// Loop closures whose ends are both within this many node indices of another's are in one
 /// place group ([`place_groups`]).
-const GROUP_SPAN: usize = 10;
+pub(crate) const GROUP_SPAN: usize = 10;
 
 /// The place of edge e: its two node indices, smaller first.
-fn place(graph: &PoseGraph, e: usize) -> (usize, usize) {
+pub(crate) fn place(graph: &PoseGraph, e: usize) -> (usize, usize) {
     let (a, b) = graph.endpoints()[e];
     (a.min(b), a.max(b))
 }
 
 /// Whether two places ([`place`]) are one: both ends within [`GROUP_SPAN`] node indices.
-fn same_place((a, b): (usize, usize), (c, d): (usize, usize)) -> bool {
+pub(crate) fn same_place((a, b): (usize, usize), (c, d): (usize, usize)) -> bool {
     a.abs_diff(c) <= GROUP_SPAN && b.abs_diff(d) <= GROUP_SPAN
 }
 

@@ -409,11 +409,20 @@ impl IncrementalBasis {
     }
 
     /// The cycle a new edge `a → b` would close ([`Self::probe`]) with the least-σ² path that
-    /// avoids edge `avoid`; `None` if `a`, `b` are not connected without it. The online
+    /// avoids the edges `avoid`; `None` if `a`, `b` are not connected without them. The online
     /// quarantine asks it when cycles through an accepted loop closure keep failing: do they
-    /// close without it?
-    pub fn probe_avoiding(&mut self, a: usize, b: usize, avoid: usize) -> Option<Cycle> {
+    /// close without it (and the loop closures of its place)?
+    pub fn probe_avoiding(&mut self, a: usize, b: usize, avoid: &[usize]) -> Option<Cycle> {
         self.probe_avoiding_within(a, b, avoid, f64::INFINITY)
+    }
+
+    /// The edges at node `v` (none for an unknown node).
+    pub fn edges_at(&self, v: usize) -> impl Iterator<Item = usize> + '_ {
+        self.adj
+            .get(v)
+            .into_iter()
+            .flatten()
+            .map(|&(_, e)| e as usize)
     }
 
     /// [`Self::probe_avoiding`] when the path is at most `radius` long (`Σ σ²`): `None` when
@@ -423,16 +432,22 @@ impl IncrementalBasis {
         &mut self,
         a: usize,
         b: usize,
-        avoid: usize,
+        avoid: &[usize],
         radius: f64,
     ) -> Option<Cycle> {
-        if avoid >= self.sigma2.len() {
-            return self.probe_within(a, b, radius);
-        }
-        let kept = std::mem::replace(&mut self.sigma2[avoid], f64::INFINITY);
+        let n = self.sigma2.len();
+        let kept: SmallVec<[(usize, f64); 4]> = (avoid.iter().filter(|&&e| e < n))
+            .map(|&e| (e, std::mem::replace(&mut self.sigma2[e], f64::INFINITY)))
+            .collect();
         let cycle = self.probe_within(a, b, radius);
-        self.sigma2[avoid] = kept;
-        cycle.filter(|c| c.terms[1..].iter().all(|t| t.edge as usize != avoid))
+        for &(e, s) in kept.iter().rev() {
+            self.sigma2[e] = s;
+        }
+        cycle.filter(|c| {
+            c.terms[1..]
+                .iter()
+                .all(|t| !avoid.contains(&(t.edge as usize)))
+        })
     }
 
     /// `Σ σ²` of a cycle's path: every term but the probed chord (term 0); edges this basis
@@ -601,13 +616,13 @@ mod tests {
         }
         b.add_edge(0, 5, 0.5);
         let shortcut = 10;
-        let far = b.probe_avoiding(0, 5, shortcut).unwrap();
+        let far = b.probe_avoiding(0, 5, &[shortcut]).unwrap();
         assert_eq!(b.path_weight(&far), 5.0);
         assert!(far.terms[1..].iter().all(|t| t.edge != shortcut as u32));
-        assert!(b.probe_avoiding_within(0, 5, shortcut, 4.9).is_none());
-        assert_eq!(b.probe_avoiding_within(0, 5, shortcut, 5.0), Some(far));
+        assert!(b.probe_avoiding_within(0, 5, &[shortcut], 4.9).is_none());
+        assert_eq!(b.probe_avoiding_within(0, 5, &[shortcut], 5.0), Some(far));
         // Through the shortcut: 0.5 away.
-        let near = b.probe_avoiding_within(0, 5, 0, 0.5).unwrap();
+        let near = b.probe_avoiding_within(0, 5, &[0], 0.5).unwrap();
         assert_eq!(b.path_weight(&near), 0.5);
     }
 }

@@ -4,9 +4,11 @@
 //! Every cycle that fails at the family-wise level α_t counts against the accepted loop
 //! closures on its path; one that 3 (then 6, 12, …) failures incriminate is examined. With
 //! `T(C)` the translation closure statistic of cycle C (χ²₂ over the translation noise
-//! scale), `C_e` the cycle of e on the least-σ² path avoiding e, `w(P)` a path's `Σ σ²` and
-//! `C_f∖e` the cycle a failed loop closure f closes on the least-σ² path avoiding e, e is
-//! evicted when
+//! scale), `G(e)` e's place group (e and the accepted loop closures whose two ends are each
+//! within 10 node indices of e's: one revisit, or a clustered group of false loop closures
+//! sharing one measurement, which would hold each other up), `C_e` the cycle of e on the
+//! least-σ² path avoiding `G(e)`, `w(P)` a path's `Σ σ²` and `C_f∖e` the cycle a failed loop
+//! closure f closes on the least-σ² path avoiding `G(e)`, e is evicted when
 //!
 //! ```text
 //! T(C_e) > χ²₂(1 − α_t)                                   (its own cycle fails), or
@@ -21,6 +23,8 @@
 //! a replay reuses; all replays together are bounded by [`REPLAY_BUDGET`] times the arrivals.
 
 use std::collections::BTreeMap;
+
+use smallvec::SmallVec;
 
 use super::estimate::Op;
 use super::quarantine::{Held, failed_by_far, retest_after};
@@ -264,12 +268,12 @@ impl OnlineEstimator {
     }
 
     /// Whether the loop closure `failed` passes the translation test, with the current
-    /// scales at `level`, on the cycle it closes when edge `e` is avoided, if that cycle's path
-    /// is at most `radius` long (`Σ σ²`; false when longer).
+    /// scales at `level`, on the cycle it closes when the edges `avoid` are avoided, if that
+    /// cycle's path is at most `radius` long (`Σ σ²`; false when longer).
     pub(super) fn passes_without(
         &mut self,
         failed: Edge,
-        e: usize,
+        avoid: &[usize],
         radius: f64,
         scales: (f64, f64),
         level: f64,
@@ -280,7 +284,7 @@ impl OnlineEstimator {
         ) else {
             return false;
         };
-        let Some(cycle) = self.basis.probe_avoiding_within(a, b, e, radius) else {
+        let Some(cycle) = self.basis.probe_avoiding_within(a, b, avoid, radius) else {
             return false;
         };
         let n = self.graph.edge_count();
@@ -288,6 +292,33 @@ impl OnlineEstimator {
         let of = |i: usize| if i == n { failed } else { edges[i] };
         closure::translation_closure(&cycle.terms, &of, scales.1)
             .is_some_and(|x| !closure::fails(x.chi2 / scales.0, closure::threshold(level)))
+    }
+
+    /// Accepted loop closure e and the accepted loop closures of its place
+    /// ([`crate::batch::same_place`]: both ends within [`crate::batch::GROUP_SPAN`] node
+    /// indices of e's), ascending. A group of false loop closures sharing one measurement
+    /// holds itself up: avoiding one of them, the path goes through another, on which the
+    /// first passes and through which its genuine contradictors fail; so a suspect is examined
+    /// without its place.
+    fn place_group(&self, e: usize) -> SmallVec<[usize; 4]> {
+        let here = crate::batch::place(&self.graph, e);
+        let span = crate::batch::GROUP_SPAN;
+        let nodes = self.graph.node_count();
+        let mut group: SmallVec<[usize; 4]> = SmallVec::new();
+        for v in here.0.saturating_sub(span)..(here.0 + span + 1).min(nodes) {
+            for f in self.basis.edges_at(v) {
+                if f == e || self.chord_cycle.get(f).is_none_or(|&t| t == NONE) {
+                    continue;
+                }
+                if crate::batch::same_place(crate::batch::place(&self.graph, f), here) {
+                    group.push(f);
+                }
+            }
+        }
+        group.push(e);
+        group.sort_unstable();
+        group.dedup();
+        group
     }
 
     /// Re-examine the accepted loop closures on the paths of [`SUSPECT_FAILURES`] (then
@@ -321,7 +352,8 @@ impl OnlineEstimator {
             let limit = closure::threshold(self.eviction_level(t));
             let edges = self.graph.edges();
             let (a, b) = self.graph.endpoints()[e];
-            let own_cycle = self.basis.probe_avoiding(a, b, e);
+            let group = self.place_group(e);
+            let own_cycle = self.basis.probe_avoiding(a, b, &group);
             let own = own_cycle.as_ref().and_then(|c| {
                 let n = edges.len();
                 let of = |i: usize| if i == n { edges[e] } else { edges[i] };
@@ -354,7 +386,8 @@ impl OnlineEstimator {
                     }
                     left -= 1;
                     n += usize::from(
-                        f.path <= radius && me.passes_without(f.edge, e, radius, scales, alpha),
+                        f.path <= radius
+                            && me.passes_without(f.edge, &group, radius, scales, alpha),
                     );
                     if n >= need {
                         return true;
