@@ -65,7 +65,8 @@
 //! incriminated a false edge). "Avoiding e" avoids e's place too: the accepted loop closures
 //! whose two ends are each within 10 node indices of e's (a clustered group of false edges
 //! sharing one measurement holds itself up otherwise: M3500 + 1000 clustered seed 4 held 107
-//! genuine loop closures behind a pair of them; module `evict`). The second clause is
+//! genuine loop closures behind a pair of them; module `evict`), and an eviction keeps the
+//! quarantined loop closures of e's place out through its replay. The second clause is
 //! for a false edge whose own cycle has no power (the path avoiding it is long, its covariance
 //! wide): on M3500 + 1000 false edges, seeds 4 and 5, six such edges stayed in and 250 and 125
 //! genuine loop closures were quarantined through them (precision 0.80, 0.89). An eviction

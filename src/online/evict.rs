@@ -17,7 +17,10 @@
 //! ```
 //!
 //! (the last 4 failed loop closures f through e: they pass without e, on a cycle not much
-//! longer than the loop e closes). An eviction quarantines e and rebuilds the estimator by
+//! longer than the loop e closes). An eviction quarantines e, keeps the quarantined loop
+//! closures of e's place in quarantine through the replay (until their own re-tests: while one
+//! member of a clustered group is accepted the others fail through it, and a replay without it
+//! would accept the next, one eviction and replay per member), and rebuilds the estimator by
 //! replaying the arrivals without it, from the latest checkpoint before e's arrival (module
 //! [`super::checkpoint`]; from the start if there is none) — module [`super::replay`] for what
 //! a replay reuses; all replays together are bounded by [`REPLAY_BUDGET`] times the arrivals.
@@ -198,8 +201,11 @@ impl OnlineEstimator {
             .extend(self.held.keys().filter(|i| !fresh.held.contains_key(i)));
         step.readmitted.sort_unstable();
         step.readmitted.dedup();
-        step.quarantined
-            .extend(evicted.values().map(|h| h.rejected));
+        step.quarantined.extend(
+            (evicted.iter())
+                .filter(|(i, _)| !self.held.contains_key(i))
+                .map(|(_, h)| h.rejected),
+        );
         step.quarantined.extend(
             (fresh.held.iter())
                 .filter(|(i, _)| !self.held.contains_key(i) && !evicted.contains_key(i))
@@ -321,6 +327,35 @@ impl OnlineEstimator {
         group
     }
 
+    /// The quarantined loop closures of evicted edge e's place ([`Self::place_group`]) stay in
+    /// quarantine through the replay that evicts e, until their own re-test: a clustered group
+    /// of false edges is not mutually consistent (its members share one measurement, not the
+    /// odometry between them), so while one member is accepted the others fail through it, and
+    /// a replay without it would accept the next.
+    fn keep_mates_out(&self, e: usize, evicted: &mut BTreeMap<usize, Held>) {
+        let here = crate::batch::place(&self.graph, e);
+        for (&i, h) in &self.held {
+            if h.evicted || evicted.contains_key(&i) {
+                continue;
+            }
+            let (Some(a), Some(b)) = (
+                self.graph.node_index(h.edge.from()),
+                self.graph.node_index(h.edge.to()),
+            ) else {
+                continue;
+            };
+            if crate::batch::same_place((a.min(b), a.max(b)), here) {
+                evicted.insert(
+                    i,
+                    Held {
+                        evicted: true,
+                        ..*h
+                    },
+                );
+            }
+        }
+    }
+
     /// Re-examine the accepted loop closures on the paths of [`SUSPECT_FAILURES`] (then
     /// twice as many, …) failed cycles (module docs). Such an edge e is evicted
     /// ([`Self::evict`]) when e's own cycle on the path that avoids it
@@ -398,6 +433,7 @@ impl OnlineEstimator {
             if closure::fails(tested, limit) || blamed(self, if doubtful { 1 } else { 2 }) {
                 let (input, held) = self.held_for_translation(e, tested, limit);
                 evicted.insert(input, held);
+                self.keep_mates_out(e, &mut evicted);
             }
         }
         self.evict(&evicted, scales, step);
