@@ -634,6 +634,14 @@ impl OnlineEstimator {
         self.add_edge_inner(edge)
     }
 
+    /// The node indices of an edge's two ends, if both are in the graph.
+    fn ends(&self, edge: &Edge) -> Option<(usize, usize)> {
+        Some((
+            self.graph.node_index(edge.from())?,
+            self.graph.node_index(edge.to())?,
+        ))
+    }
+
     fn add_edge_inner(&mut self, edge: Edge) -> Result<Step, OnlineError> {
         let input = self.arrivals;
         if input >= u32::MAX as usize {

@@ -54,6 +54,31 @@ fn stream_rejected(c: &so2lin::sim::Corrupted) -> Vec<usize> {
     est.rejected().iter().map(|r| order[r.edge]).collect()
 }
 
+/// Stream `file` with `count` false loop closures of `kind` for each of `seeds` (robot order,
+/// the defaults) and require precision and recall ≥ 0.99 of the quarantined set (printed).
+fn assert_stream_catches(file: &str, count: usize, kind: OutlierKind, seeds: &[u64]) {
+    let Some(path) = common::dataset(file) else {
+        return;
+    };
+    let (g, _) = so2lin::io::read_graph(&path, Default::default()).unwrap();
+    for &seed in seeds {
+        let c = corrupted(&g, count, kind, seed);
+        let rejected = stream_rejected(&c);
+        let caught = rejected.iter().filter(|&&e| c.is_false(e)).count();
+        let precision = caught as f64 / rejected.len() as f64;
+        let recall = caught as f64 / c.false_edges.len() as f64;
+        println!(
+            "{file} + {count} {kind:?} seed {seed}: precision {precision:.3} ({caught}/{}), \
+             recall {recall:.3}",
+            rejected.len()
+        );
+        assert!(
+            precision >= 0.99 && recall >= 0.99,
+            "{file} {kind:?} seed {seed}: precision {precision}, recall {recall}"
+        );
+    }
+}
+
 /// On 200 clean worlds the kernel raises no more rejections than α allows, and where it
 /// rejects nothing it returns the plain optimum.
 #[test]
@@ -366,27 +391,7 @@ fn solve_finds_bent_false_edges_and_groups() {
 /// through them (usually another false one) was asked (precision 0.799 and 0.889).
 #[test]
 fn m3500_stream_keeps_evicted_edges_out_through_later_replays() {
-    let Some(path) = common::dataset("M3500.g2o") else {
-        return;
-    };
-    let (g, _) = so2lin::io::read_graph(&path, Default::default()).unwrap();
-    for seed in [1, 2, 4, 5] {
-        let c = corrupted(&g, 1000, OutlierKind::Random, seed);
-        let rejected = stream_rejected(&c);
-        let caught = rejected.iter().filter(|&&e| c.is_false(e)).count();
-        let (precision, recall) = (
-            caught as f64 / rejected.len() as f64,
-            caught as f64 / c.false_edges.len() as f64,
-        );
-        println!(
-            "M3500 + 1000 seed {seed}: precision {precision:.3} ({caught}/{}), recall {recall:.3}",
-            rejected.len()
-        );
-        assert!(
-            precision >= 0.99 && recall >= 0.99,
-            "seed {seed}: {precision} {recall}"
-        );
-    }
+    assert_stream_catches("M3500.g2o", 1000, OutlierKind::Random, &[1, 2, 4, 5]);
 }
 
 /// A loop closure that failed through an accepted one blames it only when it passes on a
@@ -398,24 +403,8 @@ fn m3500_stream_keeps_evicted_edges_out_through_later_replays() {
 /// edges stayed in with a bound of 2).
 #[test]
 fn the_stream_blames_through_the_loop_a_suspect_closes() {
-    for (file, count, seed) in [("M3500.g2o", 1000, 7), ("intel.g2o", 100, 1)] {
-        let Some(path) = common::dataset(file) else {
-            return;
-        };
-        let (g, _) = so2lin::io::read_graph(&path, Default::default()).unwrap();
-        let c = corrupted(&g, count, OutlierKind::Clustered, seed);
-        let rejected = stream_rejected(&c);
-        let caught = rejected.iter().filter(|&&e| c.is_false(e)).count();
-        let precision = caught as f64 / rejected.len() as f64;
-        let recall = caught as f64 / c.false_edges.len() as f64;
-        println!(
-            "{file} + {count} clustered seed {seed}: precision {precision:.3} ({caught}/{}), \
-             recall {recall:.3}",
-            rejected.len()
-        );
-        assert!(precision >= 0.99, "{file}: precision {precision}");
-        assert!(recall >= 0.99, "{file}: recall {recall}");
-    }
+    assert_stream_catches("M3500.g2o", 1000, OutlierKind::Clustered, &[7]);
+    assert_stream_catches("intel.g2o", 100, OutlierKind::Clustered, &[1]);
 }
 
 /// A clustered group of false loop closures shares one measurement, so its members hold each
@@ -428,26 +417,7 @@ fn the_stream_blames_through_the_loop_a_suspect_closes() {
 /// but 2 with its place.
 #[test]
 fn the_stream_examines_a_suspect_without_its_place() {
-    let Some(path) = common::dataset("M3500.g2o") else {
-        return;
-    };
-    let (g, _) = so2lin::io::read_graph(&path, Default::default()).unwrap();
-    for seed in [4, 9, 10] {
-        let c = corrupted(&g, 1000, OutlierKind::Clustered, seed);
-        let rejected = stream_rejected(&c);
-        let caught = rejected.iter().filter(|&&e| c.is_false(e)).count();
-        let precision = caught as f64 / rejected.len() as f64;
-        let recall = caught as f64 / c.false_edges.len() as f64;
-        println!(
-            "M3500 + 1000 clustered seed {seed}: precision {precision:.3} ({caught}/{}), \
-             recall {recall:.3}",
-            rejected.len()
-        );
-        assert!(
-            precision >= 0.99 && recall >= 0.99,
-            "seed {seed}: {precision} {recall}"
-        );
-    }
+    assert_stream_catches("M3500.g2o", 1000, OutlierKind::Clustered, &[4, 9, 10]);
 }
 
 /// The members of a clustered group are not mutually consistent (they share one measurement,
@@ -459,24 +429,5 @@ fn the_stream_examines_a_suspect_without_its_place() {
 /// 0.902; 32 and 10 rebuilds), 8 and none with it (8 and 5 rebuilds).
 #[test]
 fn an_eviction_keeps_the_quarantined_place_mates_out() {
-    let Some(path) = common::dataset("M3500.g2o") else {
-        return;
-    };
-    let (g, _) = so2lin::io::read_graph(&path, Default::default()).unwrap();
-    for seed in [12, 13] {
-        let c = corrupted(&g, 1000, OutlierKind::Clustered, seed);
-        let rejected = stream_rejected(&c);
-        let caught = rejected.iter().filter(|&&e| c.is_false(e)).count();
-        let precision = caught as f64 / rejected.len() as f64;
-        let recall = caught as f64 / c.false_edges.len() as f64;
-        println!(
-            "M3500 + 1000 clustered seed {seed}: precision {precision:.3} ({caught}/{}), \
-             recall {recall:.3}",
-            rejected.len()
-        );
-        assert!(
-            precision >= 0.99 && recall >= 0.99,
-            "seed {seed}: {precision} {recall}"
-        );
-    }
+    assert_stream_catches("M3500.g2o", 1000, OutlierKind::Clustered, &[12, 13]);
 }

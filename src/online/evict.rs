@@ -284,10 +284,7 @@ impl OnlineEstimator {
         scales: (f64, f64),
         level: f64,
     ) -> bool {
-        let (Some(a), Some(b)) = (
-            self.graph.node_index(failed.from()),
-            self.graph.node_index(failed.to()),
-        ) else {
+        let Some((a, b)) = self.ends(&failed) else {
             return false;
         };
         let Some(cycle) = self.basis.probe_avoiding_within(a, b, avoid, radius) else {
@@ -338,10 +335,7 @@ impl OnlineEstimator {
             if h.evicted || evicted.contains_key(&i) {
                 continue;
             }
-            let (Some(a), Some(b)) = (
-                self.graph.node_index(h.edge.from()),
-                self.graph.node_index(h.edge.to()),
-            ) else {
+            let Some((a, b)) = self.ends(&h.edge) else {
                 continue;
             };
             if crate::batch::same_place((a.min(b), a.max(b)), here) {

@@ -138,10 +138,7 @@ impl OnlineEstimator {
             let Some(held) = self.held.remove(&input) else {
                 continue;
             };
-            let (Some(a), Some(b)) = (
-                self.graph.node_index(held.edge.from()),
-                self.graph.node_index(held.edge.to()),
-            ) else {
+            let Some((a, b)) = self.ends(&held.edge) else {
                 continue;
             };
             // At the per-cycle level α; at the arrival's level when the data have shown the
