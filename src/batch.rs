@@ -604,6 +604,11 @@ pub(crate) const GROUP_SPAN: usize = 10;
 /// The place of edge e: its two node indices, smaller first.
 pub(crate) fn place(graph: &PoseGraph, e: usize) -> (usize, usize) {
     let (a, b) = graph.endpoints()[e];
+    place_of(a, b)
+}
+
+/// The place of an edge between node indices a and b: smaller first.
+pub(crate) fn place_of(a: usize, b: usize) -> (usize, usize) {
     (a.min(b), a.max(b))
 }
 

@@ -647,12 +647,8 @@ impl OnlineEstimator {
         if input >= u32::MAX as usize {
             return Err(OnlineError::Capacity(u32::MAX as usize));
         }
-        let ends = (
-            self.graph.node_index(edge.from()),
-            self.graph.node_index(edge.to()),
-        );
-        let mut step = match ends {
-            (Some(a), Some(b)) if self.basis.connected(a, b) => {
+        let mut step = match self.ends(&edge) {
+            Some((a, b)) if self.basis.connected(a, b) => {
                 let level = self.config.screening.online_level(self.model.len());
                 match self.add_chord(input, edge, a, b, level)? {
                     Ok(step) => step,

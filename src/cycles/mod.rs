@@ -409,7 +409,7 @@ impl IncrementalBasis {
     }
 
     /// The cycle a new edge `a → b` would close ([`Self::probe`]) with the least-σ² path that
-    /// avoids the edges `avoid`; `None` if `a`, `b` are not connected without them. The online
+    /// avoids the edges `avoid` (ascending); `None` if `a`, `b` are not connected without them. The online
     /// quarantine asks it when cycles through an accepted loop closure keep failing: do they
     /// close without it (and the loop closures of its place)?
     pub fn probe_avoiding(&mut self, a: usize, b: usize, avoid: &[usize]) -> Option<Cycle> {
@@ -435,6 +435,7 @@ impl IncrementalBasis {
         avoid: &[usize],
         radius: f64,
     ) -> Option<Cycle> {
+        debug_assert!(avoid.windows(2).all(|w| w[0] < w[1]), "avoid ascending");
         let n = self.sigma2.len();
         let kept: SmallVec<[(usize, f64); 4]> = (avoid.iter().filter(|&&e| e < n))
             .map(|&e| (e, std::mem::replace(&mut self.sigma2[e], f64::INFINITY)))
@@ -446,7 +447,7 @@ impl IncrementalBasis {
         cycle.filter(|c| {
             c.terms[1..]
                 .iter()
-                .all(|t| !avoid.contains(&(t.edge as usize)))
+                .all(|t| avoid.binary_search(&(t.edge as usize)).is_err())
         })
     }
 

@@ -338,7 +338,7 @@ impl OnlineEstimator {
             let Some((a, b)) = self.ends(&h.edge) else {
                 continue;
             };
-            if crate::batch::same_place((a.min(b), a.max(b)), here) {
+            if crate::batch::same_place(crate::batch::place_of(a, b), here) {
                 evicted.insert(
                     i,
                     Held {
