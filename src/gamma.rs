@@ -385,7 +385,9 @@ impl Conditioner {
         self.pattern.extend_from_slice(&self.stack[top..]);
         for k in 0..self.pattern.len() {
             let p = self.pattern[k] as usize;
-            self.work += 1 + self.cols[p].len() as u64;
+            let visited = 1 + self.cols[p].len() as u64;
+            self.work += visited;
+            crate::work::conditioned(visited);
             let yp = self.y[p] / self.diag[p];
             self.y[p] = yp;
             if yp != 0.0 {

@@ -21,6 +21,8 @@
 //! - [`batch`]: the paper's pipeline, driving the modules above;
 //! - [`online`]: the online estimator, driving the same modules one edge at a time;
 //! - [`log`]: MCAP recording and bit-exact replay of online runs.
+//! - [`work`]: the work a thread does in searches and factors, counted (deterministic, unlike
+//!   a latency).
 //!
 //! ```
 //! use so2lin::sim::{simulate, SimConfig};
@@ -49,6 +51,7 @@ pub mod refine;
 pub mod screening;
 pub mod sim;
 pub mod tree;
+pub mod work;
 pub mod wraps;
 
 pub use error::{Error, Result};

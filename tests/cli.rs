@@ -333,6 +333,16 @@ fn stream_json_reports_latency_and_matches_screen() {
     }
     let l = &v["latency_us"]["all"];
     assert!(l["p50"].as_f64() <= l["p99"].as_f64() && l["p99"].as_f64() <= l["max"].as_f64());
+    // The work per step, counted: ordered percentiles, a total, and work where there is some
+    // (a clean stream reads the estimate's factor; its searches settle nodes).
+    for kind in ["search_nodes", "estimate_entries", "conditioning_entries"] {
+        let w = &v["work_per_step"][kind];
+        let at = |k: &str| w[k].as_u64().unwrap_or_else(|| panic!("{kind}.{k}"));
+        assert!(at("p50") <= at("p90") && at("p90") <= at("p99") && at("p99") <= at("max"));
+        assert!(at("max") <= at("total"), "{kind}");
+    }
+    assert!(v["work_per_step"]["search_nodes"]["total"].as_u64() > Some(0));
+    assert!(v["work_per_step"]["estimate_entries"]["total"].as_u64() > Some(0));
     // The quarantine's noise scales are reported, within their range.
     for (scale, floor) in [("angle", 0.25), ("translation", 0.01)] {
         let x = v["noise_scales"][scale].as_f64().unwrap();

@@ -208,6 +208,8 @@ impl Dijkstra {
     ) -> Option<bool> {
         let g = self.generation;
         let mut seq = self.seq;
+        let before = self.order.len();
+        let counted = |order: &Vec<u32>| crate::work::searched((order.len() - before) as u64);
         while let Some(Reverse(entry)) = self.heap.pop() {
             let v = entry.node();
             if self.node[v].done == g {
@@ -221,11 +223,13 @@ impl Dijkstra {
                 // Queued again, for a search that goes on (`resume_toward`).
                 self.heap.push(Reverse(entry));
                 self.seq = seq;
+                counted(&self.order);
                 return None;
             }
             self.node[v].done = g;
             self.order.push(v as u32);
             if target == Some(v) {
+                counted(&self.order);
                 return Some(true);
             }
             let d = self.node[v].dist;
@@ -245,6 +249,7 @@ impl Dijkstra {
             }
         }
         self.seq = seq;
+        counted(&self.order);
         Some(false)
     }
 

@@ -173,11 +173,13 @@ impl Landmarks {
         self.dist[v * MAX_LANDMARKS + l] = d;
         self.heap.clear();
         self.heap.push(Reverse((d.to_bits(), v as u32)));
+        let mut settled = 0;
         while let Some(Reverse((bits, x))) = self.heap.pop() {
             let (dx, x) = (f64::from_bits(bits), x as usize);
             if dx > self.dist[x * MAX_LANDMARKS + l] {
                 continue;
             }
+            settled += 1;
             for &(y, e) in &adj[x] {
                 let nd = dx + w[e as usize];
                 let slot = &mut self.dist[y as usize * MAX_LANDMARKS + l];
@@ -187,6 +189,7 @@ impl Landmarks {
                 }
             }
         }
+        crate::work::searched(settled);
     }
 
     /// A new landmark: the node farthest from the landmarks so far (ties: the lowest index),

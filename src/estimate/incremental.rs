@@ -300,6 +300,7 @@ impl<const K: usize> SqrtInfo<K> {
         mut beta: [f64; K],
         downdate: bool,
     ) -> Result<([f64; K], f64), Indefinite> {
+        let work_before = self.work;
         let mut w = std::mem::take(&mut self.w);
         let mut next = std::mem::take(&mut self.w_next);
         let mut head = 0;
@@ -483,6 +484,7 @@ impl<const K: usize> SqrtInfo<K> {
         };
         self.w = w;
         self.w_next = next;
+        crate::work::estimated(self.work - work_before);
         self.gains_valid &= result.is_ok();
         result
     }
@@ -540,6 +542,7 @@ impl<const K: usize> SqrtInfo<K> {
     /// variables), in increasing order: `visit(d_k, y_k)` for each of them.
     fn forward(&mut self, entries: &[(usize, f64)], mut visit: impl FnMut(&mut [f64; K], f64)) {
         self.load(entries);
+        let work_before = self.work;
         let mut w = std::mem::take(&mut self.w);
         let mut next = std::mem::take(&mut self.w_next);
         let mut head = 0;
@@ -593,6 +596,7 @@ impl<const K: usize> SqrtInfo<K> {
         }
         self.w = w;
         self.w_next = next;
+        crate::work::estimated(self.work - work_before);
     }
 
     /// The right-hand side d (to save and restore around a temporary [`Self::reset_rhs`]).
@@ -610,6 +614,7 @@ impl<const K: usize> SqrtInfo<K> {
     /// Every variable's value, indexed by variable (one back-substitution).
     pub fn solve(&self, rhs: usize) -> Vec<f64> {
         let n = self.len();
+        crate::work::estimated((n + self.nnz) as u64);
         let mut x = vec![0.0; n];
         for p in (0..n).rev() {
             let s: f64 = self.rows[p]
@@ -660,6 +665,12 @@ impl<const K: usize> SqrtInfo<K> {
     /// Back-substitution of right-hand side q along `self.path` (from [`Self::path_of`]):
     /// the value at position p, its first element.
     fn back_along_path(&mut self, p: usize, q: usize) -> f64 {
+        let visited: usize = self
+            .path
+            .iter()
+            .map(|&k| 1 + self.rows[k as usize].len())
+            .sum();
+        crate::work::estimated(visited as u64);
         for &k in self.path.iter().rev() {
             let k = k as usize;
             let s: f64 = self.rows[k]
@@ -735,6 +746,7 @@ impl<const K: usize> SqrtInfo<K> {
         rows: impl IntoIterator<Item = ([(usize, f64); N], [f64; K])>,
     ) {
         let n = self.len();
+        crate::work::estimated((n + self.nnz) as u64);
         let mut g = vec![[0.0; K]; n];
         for (entries, beta) in rows {
             for (v, a) in entries {

@@ -245,9 +245,13 @@ impl<S: Send + 'static, T, M: Send + 'static> Beside<S, T, M> {
         drop(g);
         cv.notify_all();
         let mut state = state?;
-        for change in left {
-            (self.apply)(&mut state, change)?;
-        }
+        // How many changes are left here depends on the threads' timing: their work is not
+        // counted (module `crate::work`), so that the counts stay deterministic.
+        let apply = self.apply;
+        crate::work::paused(|| {
+            left.into_iter()
+                .try_for_each(|change| apply(&mut state, change))
+        })?;
         Some((self.finish)(state))
     }
 }

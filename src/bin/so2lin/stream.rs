@@ -60,6 +60,38 @@ pub struct Latency {
     pub count: usize,
 }
 
+/// Nearest-rank percentile `p` of a sorted, non-empty sample.
+fn rank(sorted: &[u64], p: f64) -> u64 {
+    sorted[(((p * sorted.len() as f64).ceil() as usize).max(1) - 1).min(sorted.len() - 1)]
+}
+
+/// p50, p90, p99, max and total of one kind of work per step ([`so2lin::work`]).
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct WorkPerStep {
+    pub p50: u64,
+    pub p90: u64,
+    pub p99: u64,
+    pub max: u64,
+    pub total: u64,
+}
+
+impl WorkPerStep {
+    /// Nearest-rank percentiles of a sample of counts.
+    pub fn of(mut counts: Vec<u64>) -> Self {
+        if counts.is_empty() {
+            return Self::default();
+        }
+        counts.sort_unstable();
+        Self {
+            p50: rank(&counts, 0.50),
+            p90: rank(&counts, 0.90),
+            p99: rank(&counts, 0.99),
+            max: counts[counts.len() - 1],
+            total: counts.iter().sum(),
+        }
+    }
+}
+
 impl Latency {
     /// Nearest-rank percentiles of a sample (ns in, µs out).
     pub fn of(mut ns: Vec<u64>) -> Self {
@@ -67,8 +99,7 @@ impl Latency {
             return Self::default();
         }
         ns.sort_unstable();
-        let rank =
-            |p: f64| ns[(((p * ns.len() as f64).ceil() as usize).max(1) - 1).min(ns.len() - 1)];
+        let rank = |p: f64| rank(&ns, p);
         let us = |x: u64| x as f64 / 1e3;
         Self {
             p50: us(rank(0.50)),
@@ -118,8 +149,12 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         .map_or(0, |d| d.as_nanos() as u64);
     let bar = crate::progress_bar(edges.len() as u64 * 64, "streaming");
     let (mut all, mut tree, mut cyc) = (Vec::new(), Vec::new(), Vec::new());
+    // Work per step (search nodes, estimate entries, conditioning entries): counted, so the
+    // same on every machine (module `so2lin::work`).
+    let mut work: [Vec<u64>; 3] = Default::default();
     let mut sink = 0.0;
     for (k, &edge) in edges.iter().enumerate() {
+        let w0 = so2lin::work::on_this_thread();
         let t = Instant::now();
         let step = est.add_edge(edge).map_err(|e| e.to_string())?;
         match args.estimate {
@@ -135,6 +170,10 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             }
         }
         let ns = t.elapsed().as_nanos() as u64;
+        let w = so2lin::work::on_this_thread().since(w0);
+        work[0].push(w.search_nodes);
+        work[1].push(w.estimate_entries);
+        work[2].push(w.conditioning_entries);
         if let Some(rec) = recorder.as_mut() {
             let time = t0.saturating_add((k as u64).saturating_mul(args.step_time_ns));
             rec.record(&edge, &step, ns, time, &mut est);
@@ -190,6 +229,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         ("tree", Latency::of(tree)),
         ("cycle", Latency::of(cyc)),
     ];
+    let [search, estimate, conditioning] = work.map(WorkPerStep::of);
     let total = start.elapsed().as_secs_f64();
     let rss = peak_rss_bytes();
     if args.json {
@@ -219,6 +259,11 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "rebuilds_from_checkpoint": c.rebuilds_from_checkpoint,
             "replayed_arrivals": c.replayed_arrivals,
             "latency_us": latency,
+            "work_per_step": {
+                "search_nodes": search,
+                "estimate_entries": estimate,
+                "conditioning_entries": conditioning,
+            },
             "stream_seconds": stream_s,
             "steps_seconds": steps_s,
             "finish_seconds": finish_s,
@@ -255,6 +300,18 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         println!(
             "  {name:<6} ({:>6} steps) {:>9.2} {:>9.2} {:>9.2} {:>9.2} {:>9.2}",
             l.count, l.p50, l.p90, l.p99, l.max, l.mean
+        );
+    }
+    println!("work per step (counted: the same on every machine):");
+    println!("                                  p50       p90       p99     worst        total");
+    for (name, w) in [
+        ("search nodes settled", search),
+        ("estimate factor entries", estimate),
+        ("P_UU factor entries", conditioning),
+    ] {
+        println!(
+            "  {name:<26} {:>9} {:>9} {:>9} {:>9} {:>12}",
+            w.p50, w.p90, w.p99, w.max, w.total
         );
     }
     println!(
