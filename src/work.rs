@@ -16,8 +16,8 @@
 //!                       condition a new cycle on the determined ones
 //! ```
 //!
-//! The counts are deterministic: the same input gives the same counts on every machine and
-//! every run. A factor renewed beside the live one is built on another thread, whose work is
+//! The counts are deterministic: the same input gives the same counts in every run of a
+//! build, on any machine. A factor renewed beside the live one is built on another thread, whose work is
 //! not counted here; the step that collects it applies the changes the builder has not
 //! reached yet, a number that depends on the threads' timing, and that work is not counted
 //! either ([`paused`]). So a count measures the algorithm, and a latency the machine.

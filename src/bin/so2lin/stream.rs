@@ -302,7 +302,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             l.count, l.p50, l.p90, l.p99, l.max, l.mean
         );
     }
-    println!("work per step (counted: the same on every machine):");
+    println!("work per step (counted: the same in every run, on any machine):");
     println!("                                  p50       p90       p99     worst        total");
     for (name, w) in [
         ("search nodes settled", search),
