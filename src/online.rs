@@ -137,28 +137,32 @@ mod checkpoint;
 mod estimate;
 mod evict;
 mod laplacian;
+mod order;
 mod predict;
 mod quarantine;
+mod read;
 mod renewal;
+mod reorder;
 mod replay;
+mod step;
+
+pub use order::{robot_order, robot_order_indices};
+pub use step::{Counters, CycleStep, Decision, NoiseScales, Rescreen, Step, StepKind};
 
 use estimate::{Estimate, Op};
 use evict::Suspect;
 use quarantine::Held;
+use reorder::CondRenewal;
 
-use crate::batch::{self, BatchResult};
-use crate::cycles::{BasisKind, Cycle, CycleBasis, IncrementalBasis};
+use crate::cycles::{Cycle, IncrementalBasis};
 use crate::estimate::EstimateError;
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
 use crate::batch::RejectedEdge;
 use crate::closure;
-use crate::gamma::{Conditioner, GammaModel, Moments, SingularError};
+use crate::gamma::{GammaModel, Moments, SingularError};
 use crate::graph::{Edge, GraphError, Information, NodeId, NodePolicy, Pose2, PoseGraph};
-use crate::screening::{
-    ConfigError, Hypothesis, Interval, Screener, ScreeningConfig, normalised_residual,
-    rounding_success,
-};
+use crate::screening::{ConfigError, Screener, ScreeningConfig, normalised_residual};
 use crate::wraps::WrapError;
 
 /// Settings of the online estimator (deserialised fields left out take their defaults).
@@ -202,164 +206,6 @@ impl Default for OnlineConfig {
             evict: true,
             estimate_every_step: true,
         }
-    }
-}
-
-/// What a step decided about a cycle.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Decision {
-    /// One candidate: the cycle's integer is fixed.
-    Determined,
-    /// Several candidates.
-    Ambiguous,
-    /// The confidence interval held no integer: kept ambiguous with the two nearest.
-    Inconsistent,
-}
-
-impl Decision {
-    fn of(iv: Interval, determined: bool) -> Self {
-        if determined {
-            Decision::Determined
-        } else if iv.inconsistent {
-            Decision::Inconsistent
-        } else {
-            Decision::Ambiguous
-        }
-    }
-}
-
-/// The screening of the new cycle closed by a step.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct CycleStep {
-    /// Cycle id (0-based, in order of closing).
-    pub cycle: usize,
-    /// Conditional mean of γ given the determined cycles.
-    pub mean: f64,
-    /// Conditional standard deviation.
-    pub sd: f64,
-    /// Candidate integers `lo..=hi`.
-    pub candidates: Interval,
-    /// The decision.
-    pub decision: Decision,
-}
-
-/// An earlier ambiguous cycle re-screened because a determination shared information with it.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct Rescreen {
-    /// Cycle id.
-    pub cycle: usize,
-    /// Candidates before the step.
-    pub before: Interval,
-    /// Candidates after it.
-    pub after: Interval,
-    /// Decision after it.
-    pub decision: Decision,
-    /// Whether the candidates or decision changed.
-    pub changed: bool,
-}
-
-/// What one edge did.
-#[derive(Clone, Debug, PartialEq, Serialize)]
-#[serde(tag = "kind", rename_all = "snake_case")]
-pub enum StepKind {
-    /// A tree edge: reached a new node, or joined two components.
-    Tree {
-        /// The edge created a node.
-        new_node: bool,
-        /// The edge joined two components.
-        joined_components: bool,
-    },
-    /// A chord: closed a new cycle.
-    Cycle(CycleStep),
-    /// A loop closure whose cycle failed its test: quarantined (see [`Step::quarantined`]),
-    /// not added to the graph.
-    Quarantined,
-}
-
-/// The outcome of [`OnlineEstimator::add_edge`].
-#[derive(Clone, Debug, PartialEq, Serialize)]
-pub struct Step {
-    /// Index of the edge (0-based, in order of arrival).
-    pub edge: usize,
-    /// Tree edge or new cycle.
-    pub kind: StepKind,
-    /// Earlier cycles re-screened by this step, ascending.
-    pub rescreened: Vec<Rescreen>,
-    /// The edges quarantined by this step: the arriving loop closure, with its test; after an
-    /// eviction, the evicted edges and any other the rebuild quarantined.
-    #[serde(skip_serializing_if = "Vec::is_empty")]
-    pub quarantined: Vec<RejectedEdge>,
-    /// Input indices of quarantined edges re-admitted at this step (by a re-test, or by the
-    /// rebuild after an eviction), ascending.
-    #[serde(skip_serializing_if = "Vec::is_empty")]
-    pub readmitted: Vec<usize>,
-}
-
-/// Counters of a run.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
-pub struct Counters {
-    /// Edges accepted (added to the graph).
-    pub steps: usize,
-    /// Loop closures in quarantine now.
-    pub quarantined: usize,
-    /// Quarantined loop closures re-admitted so far.
-    pub readmitted: usize,
-    /// Tree edges among them.
-    pub tree_edges: usize,
-    /// Cycles closed.
-    pub cycles: usize,
-    /// Cycles determined.
-    pub determined: usize,
-    /// Cycles ambiguous now.
-    pub ambiguous: usize,
-    /// Cycles found inconsistent so far.
-    pub inconsistent: usize,
-    /// Re-screens of ambiguous cycles.
-    pub rescreens: usize,
-    /// Times the factor of P_UU was rebuilt in a fill-reducing order.
-    pub reorders: usize,
-    /// Times the orientation factor's order was renewed (built beside the live factor).
-    pub estimate_renewals: usize,
-    /// Steps that had to wait for a renewal's builder thread (0 when it keeps up).
-    pub renewal_waits: usize,
-    /// Times every position row was re-linearised at the current headings because they had
-    /// moved by more than the bound on the fast answers' heading lag (1 rad; module
-    /// `online::estimate`) since the rows were. Like `estimate_renewals`, it counts the
-    /// estimate's work applied so far, which the next read (or loop closure, while the
-    /// estimate is read every step) brings up to date.
-    pub estimate_relinearisations: usize,
-    /// Times the estimator was rebuilt by a replay of the stream: evictions, and the one
-    /// re-test from the start of a stream that quarantined a loop closure (module
-    /// `online::checkpoint`).
-    pub rebuilds: usize,
-    /// Those that replayed from a checkpoint instead of from the first arrival.
-    pub rebuilds_from_checkpoint: usize,
-    /// Arrivals the rebuilds replayed, in all.
-    pub replayed_arrivals: usize,
-}
-
-/// The noise scales the quarantine uses ([`OnlineEstimator::noise_scales`]), estimated from
-/// the accepted cycles ([`closure::Scale`]). They multiply the declared variances in the
-/// quarantine's tests only; the screening that determines γ keeps the declared noise.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct NoiseScales {
-    /// s_θ: the angle variances' factor (1 before 50 samples).
-    pub angle: f64,
-    /// Cycle tests s_θ was estimated from: the angle residuals of cycles with a sharp angle
-    /// (conditional sd < 0.1) that did not fail by far, at arrival and at re-tests.
-    pub angle_samples: usize,
-    /// s: the translation closures' factor (1 before 50 samples).
-    pub translation: f64,
-    /// Translation closures s was estimated from (those that did not fail by far).
-    pub translation_samples: usize,
-}
-
-impl NoiseScales {
-    /// The larger of the two scales: the noise `solve`'s SE(2) tests assume, so that neither
-    /// component is tested tighter than its own.
-    pub fn larger(&self) -> f64 {
-        self.angle.max(self.translation)
     }
 }
 
@@ -509,25 +355,6 @@ pub const ANGLE_TEST: &str = "cycle_angle";
 /// Name of the translation test in [`RejectedEdge::test`]: the statistic is χ²₂.
 pub const TRANSLATION_TEST: &str = "cycle_translation";
 
-/// A renewal of the P_UU factor built beside the live one ([`OnlineEstimator::maybe_reorder`]).
-struct CondRenewal {
-    /// When it is collected (the live work counted by [`Conditioner::take_work`]).
-    due: renewal::Due,
-    build: renewal::Beside<(Conditioner, GammaModel), (Conditioner, GammaModel), CondMsg>,
-    /// Cycles of the model sent to the builder.
-    cycles_sent: usize,
-    /// Determinations (positions in the live factor's order) sent to the builder.
-    determined_sent: usize,
-}
-
-/// What a renewal's builder of the P_UU factor is told as the live estimator goes on.
-enum CondMsg {
-    /// A new cycle: μ_t and its row of P_γ.
-    Cycle(f64, Vec<(u32, f64)>),
-    /// Cycle c determined with this value.
-    Determine(u32, i64),
-}
-
 impl std::fmt::Debug for OnlineEstimator {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("OnlineEstimator")
@@ -538,17 +365,6 @@ impl std::fmt::Debug for OnlineEstimator {
             .finish_non_exhaustive()
     }
 }
-
-/// Below this many determined cycles L is never reordered (chronological fill is cheap).
-const REORDER_MIN_ROWS: usize = 256;
-/// Reorder when L's nonzeros per row exceed this multiple of the last reordered factor's.
-const REORDER_FILL_RATIO: f64 = 1.5;
-/// A renewal of the P_UU factor is collected once the live factor has done this many times
-/// the work its builder is expected to do (the builder may share its core with the
-/// estimate's).
-const REORDER_WORK_MARGIN: f64 = 1.5;
-/// The P_UU builder's fill-reducing order, in entries of a solve per nonzero of P_γ.
-const ORDER_WORK_PER_NONZERO: f64 = 20.0;
 
 impl OnlineEstimator {
     /// A new estimator with no nodes.
@@ -995,130 +811,6 @@ impl OnlineEstimator {
         out.sort_by_key(|x| x.cycle);
     }
 
-    /// Renew the factor of P_UU in a fill-reducing order when appending in chronological
-    /// order has made it much denser than a reordered one would be (amortised: its fill per
-    /// row must grow by half first). Conditional moments do not depend on the order. The new
-    /// factor is built **beside** the live one on another thread, from a snapshot of the
-    /// determined cycles, collected once the live factor has done [`REORDER_WORK_MARGIN`]
-    /// times the work the builder is expected to do, and at least a number of steps later
-    /// (counts, so the run is deterministic whatever the threads' timing; a step waits only if
-    /// the builder is still busy then). The builder is sent every later cycle and
-    /// determination and applies them itself, so the swap costs nothing: no step rebuilds or
-    /// replays the factor.
-    fn maybe_reorder(&mut self) {
-        if self.renewal.is_some() {
-            return;
-        }
-        let rows = self.screener.cond.len();
-        if rows < REORDER_MIN_ROWS {
-            return;
-        }
-        let per_row = self.screener.cond.factor_nnz() as f64 / rows as f64;
-        let base = if self.fill_after_reorder.is_finite() {
-            self.fill_after_reorder
-        } else {
-            1.0
-        };
-        if per_row <= REORDER_FILL_RATIO * base.max(1.0) {
-            return;
-        }
-        let determined = self.screener.cond.determined();
-        let model = self.model.rows_only();
-        // The rebuilt factor is small (fill-reducing order) while the live one keeps filling:
-        // collect it as soon as the builder can be done. That is counted in the live factor's
-        // own work (below), so a collection does not come later in time as the live steps grow
-        // slower; and at least per_row steps after the start: rebuilding costs about rows · f²
-        // for a fresh fill of f ≤ per_row per row, a step's solve up to rows · per_row (the
-        // bound that matters when P_γ is dense: complete graphs, per_row ≈ rows/2).
-        let delay = laplacian::MIN_DELAY.max(per_row.ceil() as u64);
-        let build = move || {
-            let fresh = Conditioner::rebuilt(&model, &determined, 0).ok()?;
-            Some((fresh, model))
-        };
-        // Keep up with the live model and determinations until collected.
-        let apply = |(fresh, model): &mut (Conditioner, GammaModel), msg: CondMsg| {
-            match msg {
-                CondMsg::Cycle(mu, row) => {
-                    model.push_row(mu, &row);
-                }
-                CondMsg::Determine(c, v) => {
-                    fresh.determine(model, c as usize, v).ok()?;
-                }
-            }
-            Some(())
-        };
-        // The builder's copy of the model comes back to be freed on the worker: its row per
-        // cycle cost the collecting step 0.33 ms to free on city10000, about 8 ms on a
-        // 100 000-pose world.
-        let finish = |built: (Conditioner, GammaModel)| built;
-        // The builder's work in the live factor's units: its solves, expected from the last
-        // one's per determined cycle (at least one solve of the current fill per row), and the
-        // fill-reducing order it computes first, about as long per nonzero of P_γ as
-        // ORDER_WORK_PER_NONZERO entries of a solve (measured on city10000: 10.8 ms for 115 000
-        // nonzeros, against 5 ns per entry).
-        let expected = rows as f64 * self.rebuild_work_per_row.max(per_row)
-            + ORDER_WORK_PER_NONZERO * self.model.nnz() as f64;
-        self.cond_work += self.screener.cond.take_work();
-        let worker = &mut self.worker;
-        if let Some(build) = renewal::Beside::start(worker, "so2lin-reorder", build, apply, finish)
-        {
-            self.renewal = Some(CondRenewal {
-                due: renewal::Due {
-                    step: self.counters.steps as u64 + delay,
-                    work: self.cond_work + (REORDER_WORK_MARGIN * expected) as u64,
-                },
-                build,
-                cycles_sent: self.model.len(),
-                determined_sent: rows,
-            });
-        }
-    }
-
-    /// Advance a renewal of the P_UU factor (see [`Self::maybe_reorder`]): tell the builder
-    /// about this step's cycle and determinations, and at its step collect it and swap it in.
-    fn advance_reorder(&mut self) {
-        let Some(r) = &mut self.renewal else { return };
-        let live = &self.screener.cond;
-        let mut sent = true;
-        for t in r.cycles_sent..self.model.len() {
-            let msg = CondMsg::Cycle(self.model.mu()[t], self.model.row(t).to_vec());
-            sent &= r.build.send(msg);
-        }
-        r.cycles_sent = self.model.len();
-        for &c in &live.order()[r.determined_sent..] {
-            let v = live.value(c as usize).unwrap_or(0);
-            sent &= r.build.send(CondMsg::Determine(c, v));
-        }
-        r.determined_sent = live.len();
-        if !sent {
-            self.renewal = None;
-            return;
-        }
-        self.cond_work += self.screener.cond.take_work();
-        if !r.due.reached(self.counters.steps as u64, self.cond_work) {
-            return;
-        }
-        let Some(r) = self.renewal.take() else { return };
-        let Some((mut fresh, snapshot)) = r.build.collect(&mut self.cond_waits) else {
-            return;
-        };
-        self.worker.retire("so2lin-reorder", snapshot);
-        // The builder's own work (its build and the changes it applied).
-        self.rebuild_work_per_row = fresh.take_work() as f64 / fresh.len().max(1) as f64;
-        self.install_conditioner(fresh);
-    }
-
-    /// Swap in a P_UU factor rebuilt in a fill-reducing order (a renewal's, or the catch-up of
-    /// module `predict`): the old one is freed on the worker, and the fill the next renewal is
-    /// measured against is this one's.
-    fn install_conditioner(&mut self, fresh: Conditioner) {
-        let old = std::mem::replace(&mut self.screener.cond, fresh);
-        self.worker.retire("so2lin-reorder", old);
-        let rows = self.screener.cond.len().max(1);
-        self.fill_after_reorder = self.screener.cond.factor_nnz() as f64 / rows as f64;
-        self.counters.reorders += 1;
-    }
-
     fn refresh_counters(&mut self) {
         self.counters.quarantined = self.held.len();
         self.counters.determined = self.screener.cond.len() + self.backlog.len();
@@ -1130,219 +822,6 @@ impl OnlineEstimator {
         self.counters.estimate_relinearisations = self.estimate.relinearisations;
         self.counters.replayed_arrivals = self.replay_work;
     }
-
-    /// Counters of the run so far.
-    pub fn counters(&self) -> Counters {
-        self.counters
-    }
-
-    /// The graph so far: the accepted edges, in the order they were added (quarantined loop
-    /// closures are not in it; a re-admitted one is added when it is re-admitted).
-    /// [`Self::input_index`] maps its edges to input order.
-    pub fn graph(&self) -> &PoseGraph {
-        &self.graph
-    }
-
-    /// The input index (0-based, in order of arrival) of edge `e` of [`Self::graph`]; the
-    /// identity while nothing was quarantined.
-    pub fn input_index(&self, e: usize) -> Option<usize> {
-        self.input_of.get(e).map(|&i| i as usize)
-    }
-
-    /// Number of edges given so far, accepted or quarantined.
-    pub fn arrivals(&self) -> usize {
-        self.arrivals
-    }
-
-    /// The loop closures in quarantine now, by input index: each with the test it failed, its
-    /// statistic and the threshold it exceeded (at its last test).
-    pub fn rejected(&self) -> Vec<RejectedEdge> {
-        self.held.values().map(|h| h.rejected).collect()
-    }
-
-    /// The noise scale s of the translation closures ([`closure::Scale`]): a closure's χ²₂
-    /// is tested as `χ²₂ / s`.
-    pub fn translation_scale(&self) -> f64 {
-        match self.warm {
-            Some((t, _)) if self.scale.len() < closure::SCALE_MIN_CYCLES => t,
-            _ => self.scale.value(),
-        }
-    }
-
-    /// Both noise scales with the number of samples each was estimated from.
-    pub fn noise_scales(&self) -> NoiseScales {
-        NoiseScales {
-            angle: self.angle_scale(),
-            angle_samples: self.angle_scale.len(),
-            translation: self.translation_scale(),
-            translation_samples: self.scale.len(),
-        }
-    }
-
-    /// The angle noise scale s_θ ([`closure::Scale::angle`]): the quarantine's angle test and
-    /// the translation closures' heading noise use the declared angle variances times s_θ.
-    pub fn angle_scale(&self) -> f64 {
-        match self.warm {
-            Some((_, a)) if self.angle_scale.len() < closure::SCALE_MIN_CYCLES => a,
-            _ => self.angle_scale.value(),
-        }
-    }
-
-    /// The cycles closed so far (the incremental basis), in order.
-    pub fn cycles(&self) -> &[Cycle] {
-        &self.cycles
-    }
-
-    /// Ids of the ambiguous cycles, ascending.
-    pub fn ambiguous(&self) -> Vec<usize> {
-        self.ambiguous.keys().copied().collect()
-    }
-
-    /// Current best γ: determined values, and the rounded conditional mean (clamped to the
-    /// candidates) of each ambiguous cycle.
-    pub fn gamma(&self) -> Vec<i64> {
-        (0..self.model.len()).map(|i| self.best_gamma(i)).collect()
-    }
-
-    /// Current best wraps k of every edge of [`Self::graph`] (zero on tree edges; quarantined
-    /// loop closures are not in it): `C k = γ` for [`Self::gamma`].
-    pub fn wraps(&self) -> Result<Vec<i64>, OnlineError> {
-        Ok(self.wrap.clone())
-    }
-
-    /// Current orientations of all nodes (dense index order; anchors 0; unwrapped): one
-    /// back-substitution in the maintained factor (no factorisation).
-    pub fn orientations(&mut self) -> Result<&[f64], OnlineError> {
-        self.theta = self.estimate.orientations(&self.graph);
-        self.refresh_counters();
-        Ok(&self.theta)
-    }
-
-    /// Current poses of all nodes (dense index order), **exact**: the current orientations
-    /// with their least-squares positions (anchors at the origin), as
-    /// [`OrientationEstimator::poses`](crate::estimate::OrientationEstimator::poses) would
-    /// give. With isotropic translation information (most SLAM data) every position row is
-    /// taken at the current headings in the maintained factor — one forward and one
-    /// back-substitution, no factorisation, the factor left as it was; otherwise the
-    /// 2×2-block system is solved from scratch.
-    pub fn poses(&mut self) -> Result<Vec<Pose2>, OnlineError> {
-        let poses = self.estimate.poses(&self.graph)?;
-        self.refresh_counters();
-        Ok(poses)
-    }
-
-    /// Current orientation of a node (None for an unknown node): back-substitution along the
-    /// node's path in the factor (O(1) for the newest node).
-    pub fn orientation(&mut self, node: NodeId) -> Result<Option<f64>, OnlineError> {
-        let Some(v) = self.graph.node_index(node) else {
-            return Ok(None);
-        };
-        Ok(Some(self.estimate.orientation(&self.graph, v)))
-    }
-
-    /// Current pose of a node (None for an unknown node), read from the maintained factors
-    /// along the node's path (O(1) for the newest node). The heading is exact. The position
-    /// rows use the tail's heading **as estimated when the edge arrived** (all of them are
-    /// re-linearised at the then current headings whenever a renewal of the position factor
-    /// starts, and used from its swap on),
-    /// and the isotropic part of the translation information: like iSAM2 with a
-    /// re-linearisation threshold, the fast answer lags heading corrections that loop closures
-    /// make to old nodes; [`Self::poses`] is the exact answer on demand.
-    pub fn pose(&mut self, node: NodeId) -> Result<Option<Pose2>, OnlineError> {
-        let Some(v) = self.graph.node_index(node) else {
-            return Ok(None);
-        };
-        Ok(Some(self.estimate.pose(&self.graph, v)))
-    }
-
-    /// The newest node (the last one an edge created) and its pose ([`Self::pose`]).
-    pub fn newest(&mut self) -> Result<Option<(NodeId, Pose2)>, OnlineError> {
-        let Some(node) = self.graph.nodes().last().map(|n| n.id) else {
-            return Ok(None);
-        };
-        Ok(self.pose(node)?.map(|p| (node, p)))
-    }
-
-    /// All poses as `(node id, pose)` pairs, exact ([`Self::poses`]).
-    pub fn poses_by_id(&mut self) -> Result<Vec<(NodeId, Pose2)>, OnlineError> {
-        let poses = self.poses()?;
-        Ok(self.graph.nodes().iter().map(|n| n.id).zip(poses).collect())
-    }
-
-    /// Marginal variance of a node's orientation relative to its component's anchor (None
-    /// for an unknown node): one forward solve in the maintained factor.
-    pub fn variance(&mut self, node: NodeId) -> Result<Option<f64>, OnlineError> {
-        let Some(v) = self.graph.node_index(node) else {
-            return Ok(None);
-        };
-        Ok(Some(self.estimate.orientation_variance(&self.graph, v)))
-    }
-
-    /// Marginal covariance of a node's pose `(x, y, θ)` relative to its component's anchor,
-    /// from the maintained factors (None for an unknown node). The positions are conditioned
-    /// on the headings (the linear estimate's model), so the covariance is block-diagonal: the
-    /// position block `σ²_p I` from the position factor (isotropic weights), `σ²_θ` from the
-    /// orientation factor.
-    pub fn covariance(&mut self, node: NodeId) -> Result<Option<[[f64; 3]; 3]>, OnlineError> {
-        let Some(v) = self.graph.node_index(node) else {
-            return Ok(None);
-        };
-        let p = self.estimate.position_variance(&self.graph, v);
-        let t = self.estimate.orientation_variance(&self.graph, v);
-        Ok(Some([[p, 0.0, 0.0], [0.0, p, 0.0], [0.0, 0.0, t]]))
-    }
-
-    /// Integer-bootstrapping lower bound on the probability that the current γ is right:
-    /// the determined cycles' sequential conditional deviations, and each ambiguous cycle's
-    /// deviation given the determined set (larger than its sequential one, so the product
-    /// stays a lower bound).
-    pub fn success_probability_lower_bound(&self) -> f64 {
-        let sds = self.screener.cond.conditional_sds().iter().copied();
-        let backlog = self.backlog.iter().map(|&(_, _, sd)| sd);
-        let amb = self.ambiguous.values().map(Moments::sd);
-        sds.chain(backlog)
-            .chain(amb)
-            .map(|s| rounding_success(s).ln())
-            .sum::<f64>()
-            .exp()
-    }
-
-    /// Run the fixed-point first screening and the second screening on the current state
-    /// (the batch pipeline's code) without changing the estimator, and return the same kind of
-    /// result as [`batch::screen`].
-    pub fn finish(&self) -> Result<BatchResult, OnlineError> {
-        let basis = CycleBasis {
-            kind: BasisKind::Incremental,
-            cycles: self.cycles.clone(),
-        };
-        let mut screener = self.screener.clone();
-        if let Some(fresh) = predict::with_backlog(&mut screener, &self.model, &self.backlog) {
-            screener.cond = fresh;
-        }
-        let screened = batch::run_screening(
-            &self.model,
-            screener,
-            &self.config.screening,
-            &|t| self.config.screening.online_quantile(t),
-            &basis,
-        )?;
-        let solver = basis.wrap_solver(self.graph.edge_count())?;
-        Ok(BatchResult {
-            edges: self.graph.edge_count(),
-            basis,
-            model: self.model.clone(),
-            screened,
-            solver,
-            fallback: None,
-            basis_seconds: 0.0,
-            screening_seconds: 0.0,
-        })
-    }
-
-    /// The surviving hypotheses of the current ambiguous set (second screening), best first.
-    pub fn hypotheses(&self) -> Result<Vec<Hypothesis>, OnlineError> {
-        Ok(self.finish()?.screened.hypotheses)
-    }
 }
 
 /// No cycle.
@@ -1350,31 +829,4 @@ const NONE: u32 = u32::MAX;
 
 fn edges_of(c: &Cycle) -> Vec<usize> {
     c.terms.iter().map(|t| t.edge as usize).collect()
-}
-
-/// The edges in **robot order**: a robot produces an edge when its later node appears, so the
-/// edges are stably sorted by the first appearance (in the given order) of the later of their
-/// two nodes. Files that list all odometry first and every loop closure after (M3500) are
-/// streamed as a robot would have produced them; a file already in robot order is unchanged.
-pub fn robot_order(edges: &[Edge]) -> Vec<Edge> {
-    robot_order_indices(edges)
-        .into_iter()
-        .map(|i| edges[i])
-        .collect()
-}
-
-/// The permutation behind [`robot_order`]: position k of the robot order holds
-/// `edges[robot_order_indices(edges)[k]]`.
-pub fn robot_order_indices(edges: &[Edge]) -> Vec<usize> {
-    let mut first: BTreeMap<NodeId, usize> = BTreeMap::new();
-    for e in edges {
-        for n in [e.from(), e.to()] {
-            let next = first.len();
-            first.entry(n).or_insert(next);
-        }
-    }
-    let key = |e: &Edge| first[&e.from()].max(first[&e.to()]);
-    let mut out: Vec<usize> = (0..edges.len()).collect();
-    out.sort_by_key(|&i| key(&edges[i]));
-    out
 }

@@ -20,7 +20,7 @@
 //! build, on any machine. A factor renewed beside the live one is built on another thread, whose work is
 //! not counted here; the step that collects it applies the changes the builder has not
 //! reached yet, a number that depends on the threads' timing, and that work is not counted
-//! either ([`paused`]). So a count measures the algorithm, and a latency the machine.
+//! either. So a count measures the algorithm, and a latency the machine.
 //!
 //! The counters belong to the thread ([`on_this_thread`]): a program that runs one estimator
 //! per thread, as `so2lin stream` does, reads its estimator's work as the difference of two
