@@ -278,12 +278,14 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         return Ok(());
     }
     println!(
-        "{}: {} steps ({} tree edges, {} cycles), {} nodes",
+        "{}: {} streamed, {} accepted ({} tree edges, {} cycles), {} in quarantine, {}",
         args.file.display(),
+        crate::plural(est.arrivals(), "edge", "edges"),
         c.steps,
         c.tree_edges,
         c.cycles,
-        est.graph().node_count()
+        c.quarantined,
+        crate::plural(est.graph().node_count(), "node", "nodes"),
     );
     let read = match args.estimate {
         EstimateQuery::None => "no estimate read",
@@ -315,14 +317,14 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         );
     }
     println!(
-        "online: {} determined, {} ambiguous, {} inconsistent, {} re-screens, {} factor reorders, {} estimate renewals ({} steps waited for one), {} re-linearisations of the positions",
+        "online: {} determined, {} ambiguous, {} inconsistent, {} re-screens, {} factor reorders, {} estimate renewals, {} waited for a renewal's builder (of either factor), {} re-linearisations of the positions",
         c.determined,
         c.ambiguous,
         c.inconsistent,
         c.rescreens,
         c.reorders,
         c.estimate_renewals,
-        c.renewal_waits,
+        crate::plural(c.renewal_waits, "step", "steps"),
         c.estimate_relinearisations
     );
     if c.rebuilds > 0 {
