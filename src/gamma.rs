@@ -383,11 +383,10 @@ impl Conditioner {
         }
         self.pattern.clear();
         self.pattern.extend_from_slice(&self.stack[top..]);
+        let work_before = self.work;
         for k in 0..self.pattern.len() {
             let p = self.pattern[k] as usize;
-            let visited = 1 + self.cols[p].len() as u64;
-            self.work += visited;
-            crate::work::conditioned(visited);
+            self.work += 1 + self.cols[p].len() as u64;
             let yp = self.y[p] / self.diag[p];
             self.y[p] = yp;
             if yp != 0.0 {
@@ -396,6 +395,7 @@ impl Conditioner {
                 }
             }
         }
+        crate::work::conditioned(self.work - work_before);
     }
 
     fn moments_from_scratch(&self, model: &GammaModel, i: usize) -> Moments {

@@ -8,7 +8,8 @@ use so2lin::cycles::BasisKind;
 use so2lin::estimate::OrientationEstimator;
 use so2lin::graph::{Edge, NodePolicy, Pose2, PoseGraph};
 use so2lin::sim::{SimConfig, simulate, wrap_angle};
-use std::f64::consts::TAU;
+
+mod common;
 
 fn best_orientations(g: &PoseGraph, basis: BasisKind) -> Vec<f64> {
     let cfg = BatchConfig {
@@ -86,12 +87,7 @@ proptest! {
                                      pick in any::<prop::sample::Index>(), turns in -3i32..=3) {
         let g = world(poses, seed, sigma);
         let target = pick.index(g.edge_count());
-        let shifted = rebuild(&g, |id| id, |k, e| {
-            if k != target { return *e; }
-            let m = e.measurement();
-            let m = Pose2::new(m.x, m.y, m.theta + TAU * f64::from(turns));
-            Edge::new(e.from(), e.to(), m, e.information()).unwrap()
-        });
+        let shifted = rebuild(&g, |id| id, |k, e| if k == target { common::turned(e, turns) } else { *e });
         for basis in [BasisKind::Incremental, BasisKind::Odometric] {
             assert_same_wrapped(&best_orientations(&g, basis), &best_orientations(&shifted, basis))?;
         }
@@ -102,15 +98,7 @@ proptest! {
                          pick in any::<prop::sample::Index>()) {
         let g = world(poses, seed, sigma);
         let target = pick.index(g.edge_count());
-        let reversed = rebuild(&g, |id| id, |k, e| {
-            if k != target { return *e; }
-            // Inverse relative pose: θ' = −θ, t' = −R(−θ) t. Simulated information is
-            // isotropic in x, y, so it is unchanged by the rotation.
-            let m = e.measurement();
-            let (s, c) = m.theta.sin_cos();
-            let inv = Pose2::new(-(c * m.x + s * m.y), -(-s * m.x + c * m.y), -m.theta);
-            Edge::new(e.to(), e.from(), inv, e.information()).unwrap()
-        });
+        let reversed = rebuild(&g, |id| id, |k, e| if k == target { common::reversed(e) } else { *e });
         for basis in [BasisKind::Incremental, BasisKind::Mst, BasisKind::Odometric] {
             assert_same_wrapped(&best_orientations(&g, basis), &best_orientations(&reversed, basis))?;
         }
@@ -122,12 +110,7 @@ proptest! {
                                               pick in any::<prop::sample::Index>(), turns in -3i32..=3) {
         let g = world(poses, seed, sigma);
         let target = pick.index(g.edge_count());
-        let edited = rebuild(&g, |id| id * (2 * mult + 1) + 7, |k, e| {
-            if k != target { return *e; }
-            let m = e.measurement();
-            let m = Pose2::new(m.x, m.y, m.theta + TAU * f64::from(turns));
-            Edge::new(e.from(), e.to(), m, e.information()).unwrap()
-        });
+        let edited = rebuild(&g, |id| id * (2 * mult + 1) + 7, |k, e| if k == target { common::turned(e, turns) } else { *e });
         let (a, b) = (best_poses(&g), best_poses(&edited));
         prop_assert_eq!(a.len(), b.len());
         for (p, q) in a.iter().zip(&b) {

@@ -9,7 +9,8 @@
 //! screening), as a robot would give them.
 
 use std::collections::BTreeMap;
-use std::f64::consts::TAU;
+
+mod common;
 
 use proptest::prelude::*;
 use so2lin::graph::{Edge, NodeId, Pose2};
@@ -162,12 +163,7 @@ proptest! {
                                       pick in any::<prop::sample::Index>(), turns in -3i32..=3) {
         let edges = corrupted_world(poses, seed, count, kind(clustered));
         let target = pick.index(edges.len());
-        let shifted = rewrite(&edges, |id| id, |k, e| {
-            if k != target { return *e; }
-            let m = e.measurement();
-            let m = Pose2::new(m.x, m.y, m.theta + TAU * f64::from(turns));
-            Edge::new(e.from(), e.to(), m, e.information()).unwrap()
-        });
+        let shifted = rewrite(&edges, |id| id, |k, e| if k == target { common::turned(e, turns) } else { *e });
         let (a, b) = (stream(&edges), stream(&shifted));
         assert_same_decisions(&a, &b)?;
         assert_same_poses(&a, &b, |id| id, edges[0].from(), true)?;
@@ -182,10 +178,7 @@ proptest! {
                          clustered in any::<bool>(), pick in any::<prop::sample::Index>()) {
         let edges = corrupted_world(poses, seed, count, kind(clustered));
         let target = pick.index(edges.len());
-        let reversed = rewrite(&edges, |id| id, |k, e| {
-            if k != target { return *e; }
-            Edge::new(e.to(), e.from(), e.measurement().inverse(), e.information()).unwrap()
-        });
+        let reversed = rewrite(&edges, |id| id, |k, e| if k == target { common::reversed(e) } else { *e });
         let (a, b) = (stream(&edges), stream(&reversed));
         assert_same_decisions(&a, &b)?;
         assert_same_poses(&a, &b, |id| id, edges[0].from(), false)?;

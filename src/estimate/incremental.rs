@@ -665,20 +665,17 @@ impl<const K: usize> SqrtInfo<K> {
     /// Back-substitution of right-hand side q along `self.path` (from [`Self::path_of`]):
     /// the value at position p, its first element.
     fn back_along_path(&mut self, p: usize, q: usize) -> f64 {
-        let visited: usize = self
-            .path
-            .iter()
-            .map(|&k| 1 + self.rows[k as usize].len())
-            .sum();
-        crate::work::estimated(visited as u64);
+        let mut visited = 0;
         for &k in self.path.iter().rev() {
             let k = k as usize;
+            visited += 1 + self.rows[k].len();
             let s: f64 = self.rows[k]
                 .iter()
                 .map(|&Entry(j, a)| a * self.x[j as usize])
                 .sum();
             self.x[k] = (self.d[k][q] - s) / self.diag[k];
         }
+        crate::work::estimated(visited as u64);
         self.x[p]
     }
 

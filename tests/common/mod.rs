@@ -102,3 +102,17 @@ pub fn dataset_names() -> Option<(PathBuf, Vec<String>)> {
     names.sort();
     Some((dir, names))
 }
+
+/// Edge `e` with `turns` whole turns (2π each) added to its angle measurement.
+pub fn turned(e: &so2lin::graph::Edge, turns: i32) -> so2lin::graph::Edge {
+    let m = e.measurement();
+    let m = so2lin::graph::Pose2::new(m.x, m.y, m.theta + std::f64::consts::TAU * f64::from(turns));
+    so2lin::graph::Edge::new(e.from(), e.to(), m, e.information()).unwrap()
+}
+
+/// Edge `e` written the other way: ends swapped, the inverse measurement, the same
+/// information (exact for the heading; the translation's is exact when it is isotropic and
+/// uncorrelated with the heading, as the simulator's).
+pub fn reversed(e: &so2lin::graph::Edge) -> so2lin::graph::Edge {
+    so2lin::graph::Edge::new(e.to(), e.from(), e.measurement().inverse(), e.information()).unwrap()
+}
