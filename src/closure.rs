@@ -58,7 +58,7 @@
 //! α-spending of the translation family is an empirical statement here, not a theorem.
 
 use crate::cycles::SignedEdge;
-use crate::graph::{Edge, Pose2};
+use crate::graph::Edge;
 
 /// The translation closure of one cycle and its test statistic.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -329,6 +329,63 @@ struct Piece {
     n2: C2,
 }
 
+/// The running sums of [`translation_closure`]'s moments over its pieces, in order. V is
+/// non-decreasing along the pieces, so for l ≤ k: |V_k − V_l| = V_k − V_l and
+/// min(V_k, V_l) = V_l, and the double sums run in O(n) with the stable running sums
+/// A_k = Σ_{l ≤ k} c̄_l e^{−(V_k − V_l)/2} and B_k = Σ_{l ≤ k} c_l e^{−2V_l} e^{−(V_k − V_l)/2}:
+/// S = Σ_k 2 Re(c_k A_k) − |c_k|² + E|w_k|²,  T = Σ_k 2 c_k B_k − c_k² e^{−2V_k} + ….
+struct Sums {
+    m: C2,
+    big_s: f64,
+    big_t: C2,
+    acc_a: C2,
+    acc_b: C2,
+    v_prev: f64,
+    /// `e^{−V_k/2}`, the running product of the decays (one exponential per piece).
+    half: f64,
+}
+
+impl Default for Sums {
+    fn default() -> Self {
+        Sums {
+            m: C2::default(),
+            big_s: 0.0,
+            big_t: C2::default(),
+            acc_a: C2::default(),
+            acc_b: C2::default(),
+            v_prev: 0.0,
+            half: 1.0,
+        }
+    }
+}
+
+impl Sums {
+    fn push(&mut self, a: Piece) {
+        let decay = (-0.5 * (a.v - self.v_prev)).exp();
+        self.half *= decay;
+        let half = self.half;
+        let two = (half * half) * (half * half);
+        self.v_prev = a.v;
+        self.acc_a = self.acc_a.scale(decay).add(a.c.conj());
+        self.acc_b = self.acc_b.scale(decay).add(a.c.scale(two));
+        self.m = self.m.add(a.c.scale(half));
+        let norm = a.c.0 * a.c.0 + a.c.1 * a.c.1;
+        self.big_s += a.n1 + 2.0 * a.c.mul(self.acc_a).0 - norm;
+        self.big_t = (self.big_t)
+            .add(a.n2.scale(two))
+            .add(a.c.mul(self.acc_b).scale(2.0))
+            .add(a.c.mul(a.c).scale(-two));
+    }
+
+    /// `Cov(r) = ½ [[Re(C + P), Im P], [Im P, Re(C − P)]]`, `C = S − |m|²`, `P = T − m²`.
+    fn covariance(&self) -> [[f64; 2]; 2] {
+        let m = self.m;
+        let cc = self.big_s - (m.0 * m.0 + m.1 * m.1);
+        let p = self.big_t.add(m.mul(m).scale(-1.0));
+        [[0.5 * (cc + p.0), 0.5 * p.1], [0.5 * p.1, 0.5 * (cc - p.0)]]
+    }
+}
+
 /// The translation closure of a cycle given as signed edges in traversal order; `edge(e)`
 /// returns edge e's measurement and information. `None` if an edge's information is singular.
 ///
@@ -341,75 +398,56 @@ pub fn translation_closure(
     edge: &dyn Fn(usize) -> Edge,
     angle_scale: f64,
 ) -> Option<Closure> {
-    let mut pieces = Vec::with_capacity(2 * terms.len());
-    let (mut pose, mut var) = (Pose2::default(), 0.0);
+    let mut sums = Sums::default();
+    // The frame's rotation `u = e^{iφ}` and the position `r` so far, composed edge by edge
+    // by complex products: one sine and cosine per edge (of its own angle) instead of one per
+    // rotation met (`e^{2iφ}` is `u²`).
+    let (mut u, mut r, mut var) = (C2(1.0, 0.0), C2::default(), 0.0);
     for t in terms {
         let e = edge(t.edge as usize);
         let mut s = covariance(&e)?;
         s[2][2] *= angle_scale;
         let z = e.measurement();
+        let turn = C2::polar(z.theta);
         // E|w|² and E[w²] of the translation noise in the edge's frame.
         let n1 = s[0][0] + s[1][1];
         let w2 = C2(s[0][0] - s[1][1], 2.0 * s[0][1]);
-        let at = |phase: f64| C2::polar(phase);
         if t.sign > 0 {
             // Z ⊕ ε = (t + R(θ) ε_t, θ + ε_θ): the translation at the current frame.
-            let noise = w2.mul(at(2.0 * (pose.theta + z.theta)));
-            let c = at(pose.theta).mul(C2(z.x, z.y));
-            pieces.push(Piece {
+            let c = u.mul(C2(z.x, z.y));
+            u = u.mul(turn);
+            sums.push(Piece {
                 c,
                 v: var,
                 n1,
-                n2: noise,
+                n2: w2.mul(u.mul(u)),
             });
-            pose = pose.compose(z);
+            r = r.add(c);
             var += s[2][2];
         } else {
-            // (Z ⊕ ε)⁻¹ = ε⁻¹ ∘ Z⁻¹: the noise translation −ε_t, the angle −ε_θ, then Z⁻¹.
-            let noise = w2.mul(at(2.0 * pose.theta));
-            pieces.push(Piece {
+            // (Z ⊕ ε)⁻¹ = ε⁻¹ ∘ Z⁻¹: the noise translation −ε_t, the angle −ε_θ, then
+            // Z⁻¹ = (−R(−δ) t, −δ).
+            sums.push(Piece {
                 c: C2::default(),
                 v: var,
                 n1,
-                n2: noise,
+                n2: w2.mul(u.mul(u)),
             });
             var += s[2][2];
-            let inv = z.inverse();
-            let c = at(pose.theta).mul(C2(inv.x, inv.y));
-            pieces.push(Piece {
+            let back = turn.conj();
+            let c = u.mul(back.mul(C2(-z.x, -z.y)));
+            sums.push(Piece {
                 c,
                 v: var,
                 n1: 0.0,
                 n2: C2::default(),
             });
-            pose = pose.compose(inv);
+            r = r.add(c);
+            u = u.mul(back);
         }
     }
-    let r = [pose.x, pose.y];
-    // V is non-decreasing along the pieces, so for l ≤ k: |V_k − V_l| = V_k − V_l and
-    // min(V_k, V_l) = V_l, and the double sums run in O(n) with the stable running sums
-    // A_k = Σ_{l ≤ k} c̄_l e^{−(V_k − V_l)/2} and B_k = Σ_{l ≤ k} c_l e^{−2V_l} e^{−(V_k − V_l)/2}:
-    // S = Σ_k 2 Re(c_k A_k) − |c_k|² + E|w_k|²,  T = Σ_k 2 c_k B_k − c_k² e^{−2V_k} + ….
-    let (mut m, mut big_s, mut big_t) = (C2::default(), 0.0, C2::default());
-    let (mut acc_a, mut acc_b, mut v_prev) = (C2::default(), C2::default(), 0.0);
-    for a in &pieces {
-        let half = (-0.5 * a.v).exp();
-        let two = (half * half) * (half * half);
-        let decay = (-0.5 * (a.v - v_prev)).exp();
-        v_prev = a.v;
-        acc_a = acc_a.scale(decay).add(a.c.conj());
-        acc_b = acc_b.scale(decay).add(a.c.scale(two));
-        m = m.add(a.c.scale(half));
-        let norm = a.c.0 * a.c.0 + a.c.1 * a.c.1;
-        big_s += a.n1 + 2.0 * a.c.mul(acc_a).0 - norm;
-        big_t = big_t
-            .add(a.n2.scale(two))
-            .add(a.c.mul(acc_b).scale(2.0))
-            .add(a.c.mul(a.c).scale(-two));
-    }
-    let cc = big_s - (m.0 * m.0 + m.1 * m.1);
-    let p = big_t.add(m.mul(m).scale(-1.0));
-    let cov = [[0.5 * (cc + p.0), 0.5 * p.1], [0.5 * p.1, 0.5 * (cc - p.0)]];
+    let r = [r.0, r.1];
+    let cov = sums.covariance();
     let y = r;
     let det = cov[0][0] * cov[1][1] - cov[0][1] * cov[1][0];
     let chi2 = if det > 0.0 && det.is_finite() {
@@ -429,7 +467,7 @@ pub fn translation_closure(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::graph::Information;
+    use crate::graph::{Information, Pose2};
 
     fn edge(from: u64, to: u64, z: Pose2) -> Edge {
         Edge::new(from, to, z, Information::diagonal(100.0, 100.0, 400.0)).unwrap()
