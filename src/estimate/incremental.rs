@@ -742,28 +742,38 @@ impl<const K: usize> SqrtInfo<K> {
         &mut self,
         rows: impl IntoIterator<Item = ([(usize, f64); N], [f64; K])>,
     ) {
+        self.reset_rhs_from(0, rows);
+    }
+
+    /// [`Self::reset_rhs`] for the right-hand sides `from..K` only (the others are kept): the
+    /// positions of a factor shared with the headings, re-linearised.
+    pub fn reset_rhs_from<const N: usize>(
+        &mut self,
+        from: usize,
+        rows: impl IntoIterator<Item = ([(usize, f64); N], [f64; K])>,
+    ) {
         let n = self.len();
         crate::work::estimated((n + self.nnz) as u64);
         let mut g = vec![[0.0; K]; n];
         for (entries, beta) in rows {
             for (v, a) in entries {
                 let p = self.pos_of[v] as usize;
-                for q in 0..K {
+                for q in from..K {
                     g[p][q] += a * beta[q];
                 }
             }
         }
         for k in 0..n {
             let mut dk = g[k];
-            for v in dk.iter_mut() {
+            for v in &mut dk[from..] {
                 *v /= self.diag[k];
             }
             for &Entry(j, a) in &self.rows[k] {
-                for q in 0..K {
+                for q in from..K {
                     g[j as usize][q] -= a * dk[q];
                 }
             }
-            self.d[k] = dk;
+            self.d[k][from..].copy_from_slice(&dk[from..]);
         }
     }
 }

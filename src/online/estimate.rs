@@ -27,8 +27,11 @@
 //! ([`Estimate::pose`]) lag the heading corrections that later loop closures make to old nodes,
 //! like iSAM2's with a relinearisation threshold. Every position row is re-linearised at the
 //! current headings whenever a renewal of the position factor's order starts (the renewed
-//! factor takes them), and within the step at which a bound on how far the headings have
-//! moved since the rows were linearised passes [`HEADING_LAG`]: each heading row added, or
+//! factor takes them), and at the step at which a bound on how far the headings have
+//! moved since the rows were linearised passes [`HEADING_LAG`] — the rows rewritten at that
+//! step's headings (one back-substitution), the factor's right-hand sides recomputed from
+//! them at the end of the next step (one forward solve: [`Laplacian::relinearise`]), so that
+//! no step pays for both passes over the factor: each heading row added, or
 //! measurement moved, changes the headings by a potential driven between its two ends, which
 //! by the maximum principle moves no node by more than it moves the edge's own difference
 //! `θ_b − θ_a` — known from the rotations (`(δ − (θ̂_b − θ̂_a))(1 − Πc²)`, [`Laplacian::moved`]);
@@ -142,7 +145,7 @@ const RELINEARISE_ALLOWANCE: u64 = 1 << 20;
 
 /// The bound on how far the headings may have moved since the position rows were
 /// linearised (rad) beyond which every position row is re-linearised at the current headings
-/// within the step (module docs: positions). The bound adds up every row's movement, so it
+/// (module docs: positions; the factor takes them at the end of the next step). The bound adds up every row's movement, so it
 /// is loose; measured (`so2lin stream FILE --json`, robot order, the newest pose read, against
 /// no such bound): at 1 rad the newest pose's distance to the exact one, sampled every 25
 /// steps, went on MIT from 35 m on average (89 m at worst) to 2.3 m (5.6), on M3500 from
@@ -302,6 +305,10 @@ impl Factors {
             Factors::Shared { both, .. } => {
                 both.rebuild(None);
                 self.relinearise_positions(graph, edges);
+                // The rebuild's answers are read now (nothing lags a rebuild).
+                if let Factors::Shared { both, .. } = self {
+                    both.flush_rhs();
+                }
             }
             Factors::Split { heads, positions } => {
                 heads.rebuild(None);
@@ -336,12 +343,12 @@ impl Factors {
         match self {
             Factors::Shared { both, .. } => {
                 let job = relinearise::<3>(both.all(0), graph, edges, 1);
-                both.relinearise(Box::new(job));
+                both.relinearise(Box::new(job), 1);
                 both.set_moved(0, 0.0);
             }
             Factors::Split { heads, positions } => {
                 let job = relinearise::<2>(heads.all(0), graph, edges, 0);
-                positions.relinearise(Box::new(job));
+                positions.relinearise(Box::new(job), 0);
                 heads.set_moved(0, 0.0);
             }
         }

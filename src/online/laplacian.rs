@@ -170,6 +170,9 @@ pub(crate) struct Laplacian<const K: usize> {
     last_edge: Option<usize>,
     /// Changes go to the rows only, the factor is built at [`Self::rebuild`] (a replay).
     deferred: bool,
+    /// The right-hand sides from this one on lag the rows' measurements (re-linearised, see
+    /// [`Self::relinearise`]) until the next [`Self::after_step`] recomputes them.
+    stale_rhs: Option<usize>,
     /// A bound on how far any node's anchored value has moved, per right-hand side, since
     /// [`Self::set_moved`] last set it ([`Self::moved`]).
     moved: [f64; K],
@@ -202,6 +205,7 @@ impl<const K: usize> Default for Laplacian<K> {
             steps: 0,
             last_edge: None,
             deferred: false,
+            stale_rhs: None,
             moved: [0.0; K],
             tried: None,
             last_moved: ([0.0; K], 0.0),
@@ -417,6 +421,9 @@ impl<const K: usize> Laplacian<K> {
             nodes_at_renewal: self.nodes_at_renewal,
             steps: self.steps,
             deferred: self.deferred,
+            stale_rhs: (self.stale_rhs)
+                .filter(|&from| columns.iter().any(|&q| q >= from))
+                .map(|_| 0),
             moved: columns.map(|q| self.moved[q]),
             ..Laplacian::default()
         }
@@ -512,6 +519,9 @@ impl<const K: usize> Laplacian<K> {
     /// millisecond to free).
     fn install(&mut self, mut fresh: SqrtInfo<K>) {
         fresh.take_work();
+        // Its right-hand sides are its rows' (a build's, or a renewal's that was sent every
+        // re-linearisation).
+        self.stale_rhs = None;
         self.fill_after_renewal = fresh.nnz() as f64 / self.len().max(1) as f64;
         self.last_edge = None;
         let old = std::mem::replace(&mut self.factor, fresh);
@@ -520,15 +530,31 @@ impl<const K: usize> Laplacian<K> {
         }
     }
 
-    /// Rewrite the rows' measurements by `relinearise` and the factor's right-hand sides with
-    /// them (one pass over the rows; the factor's order and values stay).
-    pub fn relinearise(&mut self, relinearise: Relinearise<K>) {
+    /// Rewrite the rows' measurements by `relinearise`, and the factor's right-hand sides
+    /// `from..K` with them at the end of the next step ([`Self::after_step`]: a forward
+    /// solve, so that no step pays for both it and the back-substitution that gave the
+    /// headings); until then the factor answers with the rows as they were. The factor's
+    /// order and values stay.
+    pub fn relinearise(&mut self, relinearise: Relinearise<K>, from: usize) {
         relinearise(&mut self.rows.y);
-        reset_rhs(&mut self.factor, &self.rows);
+        self.stale_rhs = Some(self.stale_rhs.map_or(from, |f| f.min(from)));
         self.last_edge = None;
         // A renewal in progress takes them too (or it would bring back its snapshot's).
         if self.renewal.is_some() {
             self.send(Msg::Relinearised(self.rows.y.clone()));
+        }
+    }
+
+    /// Recompute the right-hand sides a [`Self::relinearise`] left lagging, now.
+    pub fn flush_rhs(&mut self) {
+        if let Some(from) = self.stale_rhs.take() {
+            let rows = &self.rows;
+            (self.factor).reset_rhs_from(
+                from,
+                (0..rows.ends.len()).map(|e| (rows.entries(e), rows.rhs(e))),
+            );
+            // The last row's gains stay valid: d is the same linear function of the rows'
+            // right-hand sides, recomputed.
         }
     }
 
@@ -573,6 +599,7 @@ impl<const K: usize> Laplacian<K> {
         if self.deferred {
             return None;
         }
+        self.flush_rhs();
         self.step_work();
         if self.renewal.is_some() {
             return self.complete_renewal().then_some(RenewalEvent::Collected);
@@ -754,6 +781,67 @@ mod tests {
         let x = l.all(0);
         let last = x.len() - 1;
         assert!((x[last] - 0.1 * last as f64).abs() < 1e-9, "{}", x[last]);
+    }
+
+    /// A re-linearisation rewrites the rows at once and their right-hand sides at the end of
+    /// the next step: in between the factor answers as before it (the headings' column
+    /// untouched throughout), after it as a re-linearisation applied at once — with rows
+    /// rotated in between, and for a factor that splits while it lags.
+    #[test]
+    fn a_relinearisation_lands_at_the_next_step() {
+        let build = || {
+            let mut l = Laplacian::<3>::default();
+            l.add_node();
+            for v in 1..300usize {
+                l.add_node();
+                l.add_edge(v - 1, v, 4.0, [0.01, 1.0, 0.0]);
+                if v % 7 == 0 && v > 20 {
+                    l.add_edge(v - 20, v, 2.0, [0.25, 0.5, 19.0]);
+                }
+            }
+            l
+        };
+        // Every position measurement turned by 0.3 rad.
+        let job = || -> Relinearise<3> {
+            Box::new(|y: &mut [[f64; 3]]| {
+                for r in y.iter_mut() {
+                    let (s, c) = 0.3f64.sin_cos();
+                    let [x, y] = [r[1], r[2]];
+                    (r[1], r[2]) = (c * x - s * y, s * x + c * y);
+                }
+            })
+        };
+        let close = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-9);
+        let (mut now, mut later) = (build(), build());
+        let before: Vec<Vec<f64>> = (0..3).map(|q| later.all(q)).collect();
+        now.relinearise(job(), 1);
+        now.flush_rhs();
+        later.relinearise(job(), 1);
+        for (q, b) in before.iter().enumerate() {
+            assert!(close(&later.all(q), b), "column {q} moved before the step");
+        }
+        // A row rotated in before the step ends, in both.
+        for l in [&mut now, &mut later] {
+            let v = l.add_node();
+            l.add_edge(v - 1, v, 4.0, [0.01, 1.0, 0.0]);
+            l.add_edge(v - 150, v, 2.0, [0.5, 3.0, -2.0]);
+        }
+        // Split while lagging: the positions' factor takes the lag with it.
+        let (mut now2, mut later2) = (now.columns([1, 2], 2.0), later.columns([1, 2], 2.0));
+        now.after_step(true, |_| None);
+        later.after_step(true, |_| None);
+        now2.after_step(true, |_| None);
+        later2.after_step(true, |_| None);
+        for q in 0..3 {
+            assert!(close(&later.all(q), &now.all(q)), "column {q}");
+        }
+        for q in 0..2 {
+            assert!(close(&later2.all(q), &now2.all(q)), "split column {q}");
+        }
+        assert!(
+            !close(&later.all(1), &before[1]),
+            "the positions did not move"
+        );
     }
 
     /// [`Laplacian::moved`] bounds how far every node's anchored value has moved since it was
