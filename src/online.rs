@@ -291,7 +291,7 @@ pub struct OnlineEstimator {
     worker: renewal::Worker,
     /// Steps that waited for a renewal of L.
     cond_waits: usize,
-    /// The live P_UU factor's work so far ([`Conditioner::take_work`]).
+    /// The live P_UU factor's work so far ([`crate::gamma::Conditioner::take_work`]).
     cond_work: u64,
     /// The last renewal builder's work per determined cycle (the same units; 0 before one).
     rebuild_work_per_row: f64,
