@@ -446,9 +446,8 @@ pub fn translation_closure(
             u = u.mul(back);
         }
     }
-    let r = [r.0, r.1];
+    let y = [r.0, r.1];
     let cov = sums.covariance();
-    let y = r;
     let det = cov[0][0] * cov[1][1] - cov[0][1] * cov[1][0];
     let chi2 = if det > 0.0 && det.is_finite() {
         (cov[1][1] * y[0] * y[0] - 2.0 * cov[0][1] * y[0] * y[1] + cov[0][0] * y[1] * y[1]) / det
@@ -458,7 +457,7 @@ pub fn translation_closure(
         f64::INFINITY
     };
     Some(Closure {
-        residual: r,
+        residual: y,
         covariance: cov,
         chi2,
     })

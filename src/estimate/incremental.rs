@@ -752,6 +752,7 @@ impl<const K: usize> SqrtInfo<K> {
         from: usize,
         rows: impl IntoIterator<Item = ([(usize, f64); N], [f64; K])>,
     ) {
+        let from = from.min(K);
         let n = self.len();
         crate::work::estimated((n + self.nnz) as u64);
         let mut g = vec![[0.0; K]; n];

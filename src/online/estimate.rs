@@ -145,9 +145,9 @@ const RELINEARISE_ALLOWANCE: u64 = 1 << 20;
 
 /// The bound on how far the headings may have moved since the position rows were
 /// linearised (rad) beyond which every position row is re-linearised at the current headings
-/// (module docs: positions; the factor takes them at the end of the next step). The bound adds up every row's movement, so it
-/// is loose; measured (`so2lin stream FILE --json`, robot order, the newest pose read, against
-/// no such bound): at 1 rad the newest pose's distance to the exact one, sampled every 25
+/// (module docs: positions; the factor takes them at the end of the next step). The bound
+/// adds up every row's movement, so it is loose; measured (`so2lin stream FILE --json`, robot
+/// order, the newest pose read, against no such bound): at 1 rad the newest pose's distance to the exact one, sampled every 25
 /// steps, went on MIT from 35 m on average (89 m at worst) to 2.3 m (5.6), on M3500 from
 /// 0.24 m (1.3) to 0.05 m (0.43) at a cost of 0.100 → 0.108 s of steps and p99 188 → 207 µs
 /// (49 re-linearisations), on city10000 from 0.18 m to 0.10 m for no measurable time (92);

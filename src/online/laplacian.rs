@@ -440,7 +440,7 @@ impl<const K: usize> Laplacian<K> {
         let saved_y = self.rows.y.clone();
         relinearise(&mut self.rows.y);
         let saved_d = self.factor.rhs().to_vec();
-        reset_rhs(&mut self.factor, &self.rows);
+        reset_rhs(&mut self.factor, &self.rows, 0);
         let out = columns.map(|q| self.all(q));
         self.rows.y = saved_y;
         self.factor.set_rhs(saved_d);
@@ -537,6 +537,7 @@ impl<const K: usize> Laplacian<K> {
     /// order and values stay.
     pub fn relinearise(&mut self, relinearise: Relinearise<K>, from: usize) {
         relinearise(&mut self.rows.y);
+        let from = from.min(K);
         self.stale_rhs = Some(self.stale_rhs.map_or(from, |f| f.min(from)));
         self.last_edge = None;
         // A renewal in progress takes them too (or it would bring back its snapshot's).
@@ -548,13 +549,9 @@ impl<const K: usize> Laplacian<K> {
     /// Recompute the right-hand sides a [`Self::relinearise`] left lagging, now.
     pub fn flush_rhs(&mut self) {
         if let Some(from) = self.stale_rhs.take() {
-            let rows = &self.rows;
-            (self.factor).reset_rhs_from(
-                from,
-                (0..rows.ends.len()).map(|e| (rows.entries(e), rows.rhs(e))),
-            );
             // The last row's gains stay valid: d is the same linear function of the rows'
             // right-hand sides, recomputed.
+            reset_rhs(&mut self.factor, &self.rows, from);
         }
     }
 
@@ -652,7 +649,7 @@ impl<const K: usize> Laplacian<K> {
                         return None;
                     }
                     rows.y = y;
-                    reset_rhs(f, rows);
+                    reset_rhs(f, rows, 0);
                 }
                 Msg::SetY(e, y) => {
                     let e = e as usize;
@@ -707,9 +704,12 @@ impl<const K: usize> Laplacian<K> {
     }
 }
 
-/// d of a factor from the rows' current right-hand sides (priors have 0).
-fn reset_rhs<const K: usize>(f: &mut SqrtInfo<K>, rows: &Rows<K>) {
-    f.reset_rhs((0..rows.ends.len()).map(|e| (rows.entries(e), rows.rhs(e))));
+/// d of a factor, its right-hand sides `from..K`, from the rows' current ones (priors have 0).
+fn reset_rhs<const K: usize>(f: &mut SqrtInfo<K>, rows: &Rows<K>, from: usize) {
+    f.reset_rhs_from(
+        from,
+        (0..rows.ends.len()).map(|e| (rows.entries(e), rows.rhs(e))),
+    );
 }
 
 /// A factor of the whole system in a fill-reducing order (`last` at the end).
