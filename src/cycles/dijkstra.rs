@@ -164,6 +164,8 @@ impl Dijkstra {
     /// with a consistent bound. Returns whether `dst` was settled (within `radius`); then
     /// [`dist`](Self::dist), [`pred`](Self::pred) and [`path`](Self::path) hold as after
     /// [`run`](Self::run). (`run_settling` with `most` 0 then this is A* from the start.)
+    /// With a bound inflated by a factor `w ≥ 1` (weighted A*, not a lower bound any more),
+    /// the path to `dst` is at most `w` times the least distance, and `dist` is its weight.
     pub(crate) fn resume_toward(
         &mut self,
         adj: &[AdjacencyList],
@@ -237,7 +239,9 @@ impl Dijkstra {
                 let x = x as usize;
                 let nd = d + w[e as usize];
                 let s = &mut self.node[x];
-                if s.stamp != g || nd < s.dist {
+                // A settled node is final: with a consistent bound no later path is shorter;
+                // with an inflated one (weighted A*) its distance stays its path's weight.
+                if s.done != g && (s.stamp != g || nd < s.dist) {
                     s.stamp = g;
                     s.dist = nd;
                     s.pred = (v as u32, e);
