@@ -345,8 +345,12 @@ const AIMED_AFTER_NODES: usize = 32;
 ///
 /// Measured (2026-12-04; `so2lin stream FILE --json --estimate none`, robot order; M3500 +
 /// 1000 false loop closures, `so2lin inject`): nodes settled in all 108.3 M → 61.8 M on
-/// random seeds 1–80 and 47.3 M → 25.5 M on clustered seeds 1–40 (but 11); steps 17.3 s →
-/// 15.2 s on the random ones; runs with precision or recall below 0.95: random 2 of 80 (seeds
+/// random seeds 1–80 and 47.3 M → 25.5 M on clustered seeds 1–40 (but 11). Steps, least of
+/// three runs alternating the two builds, random seeds 1–7: the screening alone 0.159–0.217 →
+/// 0.122–0.177 s (p99 215–304 → 150–275 µs, worst step 4.6–25.6 → 3.1–25.2 ms, an
+/// eviction's replay); the newest pose read after every step 0.296–0.367 → 0.246–0.349 s (p99
+/// 359–440 → 310–414 µs, worst 10.7–21.7 → 7.9–34.6 ms). Runs with precision or recall
+/// below 0.95: random 2 of 80 (seeds
 /// 41, 50) → 3 of 80 (7, 41, 47), clustered none either way — the same failure each time (the
 /// ~100 loop closures of M3500's return to its start held because false ones accepted there
 /// before them), which any change of path choice moves between seeds. Paths, each against an
@@ -432,6 +436,11 @@ impl IncrementalBasis {
     /// the search stops there), found with the landmark bound inflated by `weight`
     /// ([`AIM_WEIGHT`] or 1: exact).
     fn probe_within(&mut self, a: usize, b: usize, radius: f64, weight: f64) -> Option<Cycle> {
+        // An inflated bound would stop a search within a radius short of paths inside it.
+        debug_assert!(
+            weight == 1.0 || radius == f64::INFINITY,
+            "weighted within a radius"
+        );
         if a.max(b) >= self.adj.len() || !self.connected(a, b) {
             return None;
         }
