@@ -386,6 +386,37 @@ impl Sums {
     }
 }
 
+/// What a translation closure reads of an edge, computed once per edge (the online estimator
+/// keeps one per edge of its graph: a closure of a long cycle then neither inverts an
+/// information matrix nor evaluates a sine per edge): the measurement's translation and
+/// rotation `e^{iθ}`, and its covariance `Ω⁻¹` as `E|w|² = s₀₀ + s₁₁`,
+/// `E[w²] = s₀₀ − s₁₁ + 2i s₀₁` (translation noise w in the edge's frame) and `s₂₂`.
+#[derive(Clone, Copy, Debug)]
+pub struct EdgeNoise {
+    x: f64,
+    y: f64,
+    turn: C2,
+    n1: f64,
+    w2: C2,
+    s22: f64,
+}
+
+impl EdgeNoise {
+    /// `None` if the edge's information is singular.
+    pub fn of(e: &Edge) -> Option<Self> {
+        let s = covariance(e)?;
+        let z = e.measurement();
+        Some(Self {
+            x: z.x,
+            y: z.y,
+            turn: C2::polar(z.theta),
+            n1: s[0][0] + s[1][1],
+            w2: C2(s[0][0] - s[1][1], 2.0 * s[0][1]),
+            s22: s[2][2],
+        })
+    }
+}
+
 /// The translation closure of a cycle given as signed edges in traversal order; `edge(e)`
 /// returns edge e's measurement and information. `None` if an edge's information is singular.
 ///
@@ -398,23 +429,27 @@ pub fn translation_closure(
     edge: &dyn Fn(usize) -> Edge,
     angle_scale: f64,
 ) -> Option<Closure> {
+    translation_closure_of(terms, &|e| EdgeNoise::of(&edge(e)), angle_scale)
+}
+
+/// [`translation_closure`] from each edge's [`EdgeNoise`] (`None`: singular information).
+pub fn translation_closure_of(
+    terms: &[SignedEdge],
+    edge: &dyn Fn(usize) -> Option<EdgeNoise>,
+    angle_scale: f64,
+) -> Option<Closure> {
     let mut sums = Sums::default();
     // The frame's rotation `u = e^{iφ}` and the position `r` so far, composed edge by edge
-    // by complex products: one sine and cosine per edge (of its own angle) instead of one per
-    // rotation met (`e^{2iφ}` is `u²`).
+    // by complex products: one sine and cosine per edge (of its own angle, in its
+    // [`EdgeNoise`]) instead of one per rotation met (`e^{2iφ}` is `u²`).
     let (mut u, mut r, mut var) = (C2(1.0, 0.0), C2::default(), 0.0);
     for t in terms {
-        let e = edge(t.edge as usize);
-        let mut s = covariance(&e)?;
-        s[2][2] *= angle_scale;
-        let z = e.measurement();
-        let turn = C2::polar(z.theta);
-        // E|w|² and E[w²] of the translation noise in the edge's frame.
-        let n1 = s[0][0] + s[1][1];
-        let w2 = C2(s[0][0] - s[1][1], 2.0 * s[0][1]);
+        let e = edge(t.edge as usize)?;
+        let s22 = e.s22 * angle_scale;
+        let (turn, n1, w2) = (e.turn, e.n1, e.w2);
         if t.sign > 0 {
             // Z ⊕ ε = (t + R(θ) ε_t, θ + ε_θ): the translation at the current frame.
-            let c = u.mul(C2(z.x, z.y));
+            let c = u.mul(C2(e.x, e.y));
             u = u.mul(turn);
             sums.push(Piece {
                 c,
@@ -423,7 +458,7 @@ pub fn translation_closure(
                 n2: w2.mul(u.mul(u)),
             });
             r = r.add(c);
-            var += s[2][2];
+            var += s22;
         } else {
             // (Z ⊕ ε)⁻¹ = ε⁻¹ ∘ Z⁻¹: the noise translation −ε_t, the angle −ε_θ, then
             // Z⁻¹ = (−R(−δ) t, −δ).
@@ -433,9 +468,9 @@ pub fn translation_closure(
                 n1,
                 n2: w2.mul(u.mul(u)),
             });
-            var += s[2][2];
+            var += s22;
             let back = turn.conj();
-            let c = u.mul(back.mul(C2(-z.x, -z.y)));
+            let c = u.mul(back.mul(C2(-e.x, -e.y)));
             sums.push(Piece {
                 c,
                 v: var,

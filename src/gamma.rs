@@ -383,19 +383,25 @@ impl Conditioner {
         }
         self.pattern.clear();
         self.pattern.extend_from_slice(&self.stack[top..]);
-        let work_before = self.work;
-        for k in 0..self.pattern.len() {
-            let p = self.pattern[k] as usize;
-            self.work += 1 + self.cols[p].len() as u64;
-            let yp = self.y[p] / self.diag[p];
-            self.y[p] = yp;
+        // Borrowed apart, so that the inner loop keeps y's buffer in registers (through
+        // `self` it was reloaded at every entry: a write to y might have moved it, as far as
+        // the compiler could tell).
+        let (y, cols, diag) = (&mut self.y[..], &self.cols, &self.diag);
+        let mut work = 0;
+        for &p in &self.pattern {
+            let p = p as usize;
+            let col = &cols[p];
+            work += 1 + col.len() as u64;
+            let yp = y[p] / diag[p];
+            y[p] = yp;
             if yp != 0.0 {
-                for &(r, l) in &self.cols[p] {
-                    self.y[r as usize] -= l * yp;
+                for &(r, l) in col {
+                    y[r as usize] -= l * yp;
                 }
             }
         }
-        crate::work::conditioned(self.work - work_before);
+        self.work += work;
+        crate::work::conditioned(work);
     }
 
     fn moments_from_scratch(&self, model: &GammaModel, i: usize) -> Moments {

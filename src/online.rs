@@ -264,6 +264,8 @@ pub struct OnlineEstimator {
     graph: PoseGraph,
     sigma2: Vec<f64>,
     delta: Vec<f64>,
+    /// What the translation closures read of each edge of the graph.
+    noise: Vec<Option<closure::EdgeNoise>>,
     basis: IncrementalBasis,
     cycles: Vec<Cycle>,
     model: GammaModel,
@@ -375,6 +377,7 @@ impl OnlineEstimator {
             graph: PoseGraph::new(),
             sigma2: Vec::new(),
             delta: Vec::new(),
+            noise: Vec::new(),
             basis: IncrementalBasis::new(),
             cycles: Vec::new(),
             model: GammaModel::new(),
@@ -494,6 +497,7 @@ impl OnlineEstimator {
         }
         self.sigma2.push(edge.sigma2());
         self.delta.push(edge.delta());
+        self.noise.push(closure::EdgeNoise::of(&edge));
         self.accept(input);
         self.basis.commit(a, b, edge.sigma2(), false);
         self.counters.tree_edges += 1;
@@ -558,13 +562,14 @@ impl OnlineEstimator {
             statistic,
             threshold,
         };
+        let noise = closure::EdgeNoise::of(&edge);
         if quarantine {
-            let graph = &self.graph;
-            let of = |i: usize| if i == e { edge } else { graph.edges()[i] };
+            let known = &self.noise;
+            let of = |i: usize| if i == e { noise } else { known[i] };
             let limit = closure::threshold(level);
             let angle_scale = self.angle_scale();
             let translation =
-                closure::translation_closure(&cycle.terms, &of, angle_scale).map(|c| c.chi2);
+                closure::translation_closure_of(&cycle.terms, &of, angle_scale).map(|c| c.chi2);
             if let Some(chi2) = translation {
                 let tested = chi2 / self.translation_scale();
                 let far = closure::threshold(self.eviction_level(self.model.len()));
@@ -584,6 +589,7 @@ impl OnlineEstimator {
         }
         self.sigma2.push(edge.sigma2());
         self.delta.push(edge.delta());
+        self.noise.push(noise);
         let t = self.model.push_cycle(&cycle, &self.sigma2, &self.delta);
         self.screener.grow(t + 1);
         let q = self.config.screening.quantile_at(level);
@@ -627,6 +633,7 @@ impl OnlineEstimator {
             self.screener.truncate(t);
             self.sigma2.pop();
             self.delta.pop();
+            self.noise.pop();
             if iv.inconsistent || residual > far {
                 self.suspect(&cycle, edge);
             }

@@ -78,11 +78,10 @@ pub(crate) struct Landmarks {
     far_searches: usize,
     /// Scratch of the decrease searches.
     heap: BinaryHeap<Reverse<(u64, u32)>>,
-    /// The landmarks the query in progress uses (those reaching its source and target) and
-    /// the target's distances from them.
-    active: [(usize, f64); MAX_LANDMARKS],
-    /// How many of `active` are set.
-    active_count: usize,
+    /// The target's distances from the landmarks the query in progress uses (those reaching
+    /// its source and target); NaN for the others, which [`Self::bound`] then skips without a
+    /// branch.
+    target: [f64; MAX_LANDMARKS],
 }
 
 impl Landmarks {
@@ -230,15 +229,14 @@ impl Landmarks {
     /// reach both, with the target's distances. (Only the two with the largest bound at the
     /// source was tried: slower, the bound weaker.)
     pub fn aim(&mut self, source: usize, target: usize) {
-        self.active_count = 0;
+        self.target = [f64::NAN; MAX_LANDMARKS];
         for l in 0..self.count {
             let (ds, dt) = (
                 self.dist[source * MAX_LANDMARKS + l],
                 self.dist[target * MAX_LANDMARKS + l],
             );
             if ds.is_finite() && dt.is_finite() {
-                self.active[self.active_count] = (l, dt);
-                self.active_count += 1;
+                self.target[l] = dt;
             }
         }
     }
@@ -246,11 +244,28 @@ impl Landmarks {
     /// `h(v) = max_l |d_l(target) − d_l(v)|` over the active landmarks of the last
     /// [`Self::aim`] that reach v (0 when none does).
     pub fn bound(&self, v: usize) -> f64 {
-        let row = &self.dist[v * MAX_LANDMARKS..(v + 1) * MAX_LANDMARKS];
+        let start = v * MAX_LANDMARKS;
+        let Some(row) = (self.dist.get(start..start + MAX_LANDMARKS))
+            .and_then(|r| <&[f64; MAX_LANDMARKS]>::try_from(r).ok())
+        else {
+            return 0.0;
+        };
+        // Every landmark slot at once, unrolled (no branch on which are active: a NaN
+        // difference never compares greater); the maximum is exact, so the order does not
+        // matter.
         let mut h = 0.0f64;
-        for &(l, dt) in &self.active[..self.active_count] {
-            let dv = row[l];
-            if dv.is_finite() {
+        for (&dt, &dv) in self.target.iter().zip(row) {
+            let d = (dt - dv).abs();
+            h = if d > h { d } else { h };
+        }
+        if h.is_finite() {
+            return h;
+        }
+        // An active landmark that does not reach v (never for a node connected to the
+        // source, which the landmark reaches): skipped.
+        let mut h = 0.0f64;
+        for (&dt, &dv) in self.target.iter().zip(row) {
+            if dv.is_finite() && !dt.is_nan() {
                 h = h.max((dt - dv).abs());
             }
         }

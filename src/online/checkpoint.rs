@@ -109,6 +109,7 @@ impl OnlineEstimator {
             config: self.config,
             graph: self.graph.clone(),
             sigma2: self.sigma2.clone(),
+            noise: self.noise.clone(),
             delta: self.delta.clone(),
             basis: self.basis.clone(),
             cycles: self.cycles.clone(),

@@ -291,9 +291,9 @@ impl OnlineEstimator {
             return false;
         };
         let n = self.graph.edge_count();
-        let edges = self.graph.edges();
-        let of = |i: usize| if i == n { failed } else { edges[i] };
-        closure::translation_closure(&cycle.terms, &of, scales.1)
+        let (known, noise) = (&self.noise, closure::EdgeNoise::of(&failed));
+        let of = |i: usize| if i == n { noise } else { known[i] };
+        closure::translation_closure_of(&cycle.terms, &of, scales.1)
             .is_some_and(|x| !closure::fails(x.chi2 / scales.0, closure::threshold(level)))
     }
 
@@ -379,14 +379,13 @@ impl OnlineEstimator {
             }
             let t = self.chord_cycle[e] as usize;
             let limit = closure::threshold(self.eviction_level(t));
-            let edges = self.graph.edges();
             let (a, b) = self.graph.endpoints()[e];
             let group = self.place_group(e);
             let own_cycle = self.basis.probe_avoiding(a, b, &group);
             let own = own_cycle.as_ref().and_then(|c| {
-                let n = edges.len();
-                let of = |i: usize| if i == n { edges[e] } else { edges[i] };
-                closure::translation_closure(&c.terms, &of, scales.1)
+                let (n, known) = (self.graph.edge_count(), &self.noise);
+                let of = |i: usize| if i == n { known[e] } else { known[i] };
+                closure::translation_closure_of(&c.terms, &of, scales.1)
             });
             let tested = own.map_or(0.0, |x| x.chi2 / scales.0);
             // A failed loop closure blames e when it passes on a cycle not much longer than
