@@ -563,6 +563,7 @@ impl OnlineEstimator {
             threshold,
         };
         let noise = closure::EdgeNoise::of(&edge);
+        debug_assert_eq!(self.noise.len(), e, "one closure noise per graph edge");
         if quarantine {
             let known = &self.noise;
             let of = |i: usize| if i == e { noise } else { known[i] };

@@ -365,6 +365,25 @@ mod tests {
             }
             if v % 97 == 0 || v == n - 1 {
                 assert!(g.lm.count() <= MAX_LANDMARKS);
+                // The bound is the triangle inequality's over the landmarks that reach the
+                // source and the target (while there are two components, some do not: they
+                // count for nothing), skipping those that do not reach the node.
+                for _ in 0..50 {
+                    let mut node = || (lcg(&mut state) as usize) % g.adj.len();
+                    let (s, t, u) = (node(), node(), node());
+                    g.lm.aim(s, t);
+                    let d = |l: usize, x: usize| g.lm.distance(l, x);
+                    let reference = (0..g.lm.count())
+                        .filter(|&l| d(l, s).is_finite() && d(l, t).is_finite())
+                        .filter(|&l| d(l, u).is_finite())
+                        .map(|l| (d(l, t) - d(l, u)).abs())
+                        .fold(0.0, f64::max);
+                    assert_eq!(
+                        g.lm.bound(u),
+                        reference,
+                        "node count {v}: {s} -> {t} at {u}"
+                    );
+                }
                 for l in 0..g.lm.count() {
                     // The landmark is the node at distance 0.
                     let src = (0..g.adj.len())
