@@ -69,7 +69,16 @@
 //! quarantined loop closures of e's place out through its replay. The second clause is
 //! for a false edge whose own cycle has no power (the path avoiding it is long, its covariance
 //! wide): on M3500 + 1000 false edges, seeds 4 and 5, six such edges stayed in and 250 and 125
-//! genuine loop closures were quarantined through them (precision 0.80, 0.89). An eviction
+//! genuine loop closures were quarantined through them (precision 0.80, 0.89). A third clause,
+//! **outvoted**: two of those loop closures, each a sharper test than e's own cycle (its failed
+//! path through e shorter than e's own), agree with each other on the cycle they close together
+//! through paths avoiding e's place — the loop closures of a return to a place agree among
+//! themselves even when every path between the places runs through one false edge or another —
+//! unless the two stretches of odometry joining them have the same length (members of a
+//! clustered group share one measurement and agree as true loop closures do; module `evict`).
+//! On M3500 + 1000 false edges, random seeds 1–80, it took the genuine loop closures held at the
+//! end from 372 to 160 and the runs below 0.95 precision from 3 to 1; clustered seeds 1–40,
+//! 30 → 31 and none. An eviction
 //! quarantines e and **rebuilds** the estimator by replaying the arrivals in input order
 //! without it (the current scales standing in for the replay's own until it has 50 cycles):
 //! from the start at the first rebuild, O(m) for that one step, and from then on from the
