@@ -462,6 +462,23 @@ impl OnlineEstimator {
         self.add_edge_inner(edge)
     }
 
+    /// The translation closure of a cycle whose terms are graph edges and, numbered from the
+    /// graph's edge count on, the edges `new` (not in the graph: a loop closure being tested),
+    /// from the closure noise kept per edge ([`closure::translation_closure_of`]).
+    fn closure_with(
+        &self,
+        terms: &[crate::cycles::SignedEdge],
+        new: &[Option<closure::EdgeNoise>],
+        angle_scale: f64,
+    ) -> Option<closure::Closure> {
+        let n = self.noise.len();
+        let of = |i: usize| match i.checked_sub(n) {
+            Some(k) => new.get(k).copied().flatten(),
+            None => self.noise[i],
+        };
+        closure::translation_closure_of(terms, &of, angle_scale)
+    }
+
     /// The node indices of an edge's two ends, if both are in the graph.
     fn ends(&self, edge: &Edge) -> Option<(usize, usize)> {
         Some((
@@ -574,12 +591,10 @@ impl OnlineEstimator {
         let noise = closure::EdgeNoise::of(&edge);
         debug_assert_eq!(self.noise.len(), e, "one closure noise per graph edge");
         if quarantine {
-            let known = &self.noise;
-            let of = |i: usize| if i == e { noise } else { known[i] };
             let limit = closure::threshold(level);
             let angle_scale = self.angle_scale();
             let translation =
-                closure::translation_closure_of(&cycle.terms, &of, angle_scale).map(|c| c.chi2);
+                (self.closure_with(&cycle.terms, &[noise], angle_scale)).map(|c| c.chi2);
             if let Some(chi2) = translation {
                 let tested = chi2 / self.translation_scale();
                 let far = closure::threshold(self.eviction_level(self.model.len()));

@@ -310,10 +310,8 @@ impl OnlineEstimator {
         let Some(cycle) = self.basis.probe_avoiding_within(a, b, avoid, radius) else {
             return false;
         };
-        let n = self.graph.edge_count();
-        let (known, noise) = (&self.noise, closure::EdgeNoise::of(&failed));
-        let of = |i: usize| if i == n { noise } else { known[i] };
-        closure::translation_closure_of(&cycle.terms, &of, scales.1)
+        let noise = closure::EdgeNoise::of(&failed);
+        (self.closure_with(&cycle.terms, &[noise], scales.1))
             .is_some_and(|x| !closure::fails(x.chi2 / scales.0, closure::threshold(level)))
     }
 
@@ -402,11 +400,8 @@ impl OnlineEstimator {
             let (a, b) = self.graph.endpoints()[e];
             let group = self.place_group(e);
             let own_cycle = self.basis.probe_avoiding(a, b, &group);
-            let own = own_cycle.as_ref().and_then(|c| {
-                let (n, known) = (self.graph.edge_count(), &self.noise);
-                let of = |i: usize| if i == n { known[e] } else { known[i] };
-                closure::translation_closure_of(&c.terms, &of, scales.1)
-            });
+            let own = (own_cycle.as_ref())
+                .and_then(|c| self.closure_with(&c.terms, &[self.noise[e]], scales.1));
             let tested = own.map_or(0.0, |x| x.chi2 / scales.0);
             // A failed loop closure blames e when it passes on a cycle not much longer than
             // e's own (BLAME_PATH_RATIO): it then closes the loop e closes. One whose failed
@@ -530,14 +525,9 @@ impl OnlineEstimator {
         terms.extend_from_slice(&there[1..]);
         terms.push(SignedEdge::new(n + 1, along));
         terms.extend_from_slice(&back[1..]);
-        let edges = self.graph.edges();
-        let of = |i: usize| match i.checked_sub(n) {
-            Some(0) => f,
-            Some(_) => g,
-            None => edges[i],
-        };
+        let new = [closure::EdgeNoise::of(&f), closure::EdgeNoise::of(&g)];
         let level = closure::threshold(self.config.screening.alpha);
-        closure::translation_closure(&terms, &of, scales.1)
+        (self.closure_with(&terms, &new, scales.1))
             .is_some_and(|x| !closure::fails(x.chi2 / scales.0, level))
     }
 
