@@ -247,6 +247,11 @@ impl Scale {
 
     /// The scale s (type docs).
     pub fn value(&self) -> f64 {
+        self.value_with_floor(self.floor)
+    }
+
+    /// The scale s with another floor (at most the ceiling).
+    pub fn value_with_floor(&self, floor: f64) -> f64 {
         if self.len() < SCALE_MIN_CYCLES {
             return 1.0;
         }
@@ -261,7 +266,8 @@ impl Scale {
         } else {
             1.0
         };
-        high.min(TAIL_CAP * median).clamp(self.floor, ceiling)
+        high.min(TAIL_CAP * median)
+            .clamp(floor.min(ceiling), ceiling)
     }
 }
 

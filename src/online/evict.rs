@@ -12,13 +12,23 @@
 //!
 //! ```text
 //! T(C_e) > χ²₂(1 − α_t)                                   (its own cycle fails), or
+//! A(C_e) > z(α_t), C_e short                 (its own cycle's angle fails), or
 //! #{ f recent : w(P_f through e) ≤ 4 w(C_e), w(C_f∖e) ≤ 4 w(C_e),
 //!               T(C_f∖e) ≤ χ²₂(1 − α) } ≥ 1 if T(C_e) > χ²₂(1 − α), else ≥ 2, or
 //! ∃ f, g recent : w(P_f through e), w(P_g through e) < w(C_e), g's ends near f's,
 //!               legs of different lengths, T(C_{f,g}) ≤ χ²₂(1 − α)     (outvoted)
 //! ```
 //!
-//! (the last 4 failed loop closures f through e: they pass without e, on a cycle not much
+//! (`A(C) = |Σ_i s_i δ_i − 2πk| / √(s'_θ Σ_i σ_i²)`, k the nearest integer, is C's angle
+//! residual at the data's own angle scale `s'_θ` — the angle scale floored at
+//! [`closure::SCALE_FLOOR`] instead of [`closure::ANGLE_SCALE_FLOOR`] — tested when C is
+//! short at that scale, `√(s'_θ Σ σ²)/2π < 0.1`, and `z(α_t)` the quantile the angle tests
+//! use at α_t. The arrival's angle test keeps the floor, which the long loops of the clean
+//! ais2klinik and w20000 files need, and so does the translation closure's heading spread;
+//! a false loop closure accepted there can be many of the data's own standard deviations off
+//! in angle: on M3500 + 1000 random false edges, seed 7, 1690 → 1012 is 0.74 rad off on a
+//! twelve-edge cycle, 2.85 σ at the floor 0.25 and about 9 σ at M3500's own 0.0246. Only
+//! suspects are examined, so clean data never meets this test.) (The last 4 failed loop closures f through e: they pass without e, on a cycle not much
 //! longer than the loop e closes; or two of them, each a sharper test than e's own cycle,
 //! agree with each other — `C_{f,g}` is f, the path from f's end to g's near it, g, and the
 //! path back, both paths avoiding `G(e)` and at most `w(C_e)` long, and the two paths
@@ -26,7 +36,7 @@
 //! group's members, which share one measurement, would agree with each other as two true
 //! loop closures do. This clause is for a false edge that two others cover: avoiding it, the
 //! failures' paths go through the other and fail again, but the return's loop closures still
-//! agree among themselves). An eviction quarantines e, keeps the quarantined loop
+//! agree among themselves.) An eviction quarantines e, keeps the quarantined loop
 //! closures of e's place in quarantine through the replay (until their own re-tests: while one
 //! member of a clustered group is accepted the others fail through it, and a replay without it
 //! would accept the next, one eviction and replay per member), and rebuilds the estimator by
@@ -40,7 +50,12 @@ use smallvec::SmallVec;
 
 use super::estimate::Op;
 use super::quarantine::{Held, failed_by_far, retest_after};
-use super::{NONE, OnlineError, OnlineEstimator, Step, TRANSLATION_TEST, replay};
+use std::f64::consts::TAU;
+
+use super::{
+    ANGLE_SCALE_MAX_SD, ANGLE_TEST, NONE, OnlineError, OnlineEstimator, Step, TRANSLATION_TEST,
+    replay,
+};
 use crate::batch::RejectedEdge;
 use crate::closure;
 use crate::cycles::{Cycle, SignedEdge};
@@ -116,16 +131,22 @@ const BLAME_PATH_RATIO: f64 = 4.0;
 const CONGRUENT_LEGS: i64 = 2;
 
 impl OnlineEstimator {
-    /// Graph edge `e` as an evicted loop closure that failed its translation closure test
-    /// (statistic `tested` against `limit`), keyed by its input index.
-    pub(super) fn held_for_translation(&self, e: usize, tested: f64, limit: f64) -> (usize, Held) {
+    /// Graph edge `e` as an evicted loop closure that failed `test` (statistic `tested`
+    /// against `limit`), keyed by its input index.
+    pub(super) fn held_evicted(
+        &self,
+        e: usize,
+        test: &'static str,
+        tested: f64,
+        limit: f64,
+    ) -> (usize, Held) {
         let edge = self.graph.edges()[e];
         let input = self.input_of[e] as usize;
         let rejected = RejectedEdge {
             edge: input,
             from: edge.from(),
             to: edge.to(),
-            test: TRANSLATION_TEST,
+            test,
             statistic: tested,
             threshold: limit,
         };
@@ -371,12 +392,15 @@ impl OnlineEstimator {
     /// Re-examine the accepted loop closures on the paths of [`SUSPECT_FAILURES`] (then
     /// twice as many, …) failed cycles (module docs). Such an edge e is evicted
     /// ([`Self::evict`]) when e's own cycle on the path that avoids it
-    /// ([`crate::cycles::IncrementalBasis::probe_avoiding`]) fails at [`Self::eviction_level`] (the graph has
-    /// grown since e was accepted: the path may be shorter and the test sharper), or when loop
+    /// ([`crate::cycles::IncrementalBasis::probe_avoiding`]) fails at [`Self::eviction_level`]
+    /// (the graph has grown since e was accepted: the path may be shorter and the test
+    /// sharper) — its translation closure, or, on a short cycle, its angle at the data's own
+    /// scale ([`Self::own_angle_residual`]) — or when loop
     /// closures that failed through it pass their translation test at the per-cycle level α
     /// on the path that avoids e, if that path is at most [`BLAME_PATH_RATIO`] times as long
     /// as e's own: one of the last [`RECENT_FAILURES`] if e's own cycle is doubtful, two of
-    /// them otherwise. The reported statistic is that of e's own cycle.
+    /// them otherwise. The reported test and statistic are those of e's own cycle: its angle
+    /// when that alone failed, its translation closure otherwise.
     pub(super) fn examine_suspects(&mut self, step: &mut Step) {
         if !self.evicts() || self.suspects_due.is_empty() {
             return;
@@ -403,6 +427,11 @@ impl OnlineEstimator {
             let own = (own_cycle.as_ref())
                 .and_then(|c| self.closure_with(&c.terms, &[self.noise[e]], scales.1));
             let tested = own.map_or(0.0, |x| x.chi2 / scales.0);
+            // Its own cycle's angle at the data's own scale (module docs: `A(C_e)`).
+            let far = self.config.screening.quantile_at(self.eviction_level(t));
+            let angle = (own_cycle.as_ref())
+                .and_then(|c| self.own_angle_residual(c, e))
+                .filter(|&r| r > far);
             // A failed loop closure blames e when it passes on a cycle not much longer than
             // e's own (BLAME_PATH_RATIO): it then closes the loop e closes. One whose failed
             // path through e was already longer than that is not asked (its loop is not e's,
@@ -437,16 +466,49 @@ impl OnlineEstimator {
                 }
                 false
             };
-            if closure::fails(tested, limit)
-                || blamed(self, if doubtful { 1 } else { 2 })
+            let verdict = if closure::fails(tested, limit) {
+                Some((TRANSLATION_TEST, tested, limit))
+            } else if let Some(r) = angle {
+                Some((ANGLE_TEST, r, far))
+            } else if blamed(self, if doubtful { 1 } else { 2 })
                 || self.outvoted(&group, own_weight, &recent, scales)
             {
-                let (input, held) = self.held_for_translation(e, tested, limit);
+                Some((TRANSLATION_TEST, tested, limit))
+            } else {
+                None
+            };
+            if let Some((test, statistic, threshold)) = verdict {
+                let (input, held) = self.held_evicted(e, test, statistic, threshold);
                 evicted.insert(input, held);
                 self.keep_mates_out(e, &mut evicted);
             }
         }
         self.evict(&evicted, scales, step);
+    }
+
+    /// The angle residual of suspect e's own cycle `c` (its first term, the chord, standing
+    /// for e) in standard deviations at the data's own angle scale (module docs: `A(C_e)`),
+    /// if the cycle is short at that scale: its γ standard deviation `√(s'_θ Σ σ²)/2π` below
+    /// [`ANGLE_SCALE_MAX_SD`], so that the nearest multiple of 2π is the cycle's own unless
+    /// the residual is beyond 5 standard deviations (where a genuine cycle fails anyway).
+    fn own_angle_residual(&self, c: &Cycle, e: usize) -> Option<f64> {
+        let n = self.delta.len();
+        let (mut sum, mut var) = (0.0, 0.0);
+        for t in &c.terms {
+            let i = if (t.edge as usize) < n {
+                t.edge as usize
+            } else {
+                e
+            };
+            sum += f64::from(t.sign) * self.delta[i];
+            var += self.sigma2[i];
+        }
+        let sd = (var * self.angle_scale.value_with_floor(closure::SCALE_FLOOR)).sqrt();
+        if sd / TAU >= ANGLE_SCALE_MAX_SD {
+            return None;
+        }
+        let wrapped = sum - (sum / TAU).round() * TAU;
+        Some(wrapped.abs() / sd)
     }
 
     /// Whether two of suspect e's recent failed loop closures that were sharper tests than
