@@ -178,6 +178,8 @@ pub const SCALE_FLOOR: f64 = 0.01;
 /// The smallest angle scale ([`Scale::angle`]): with the angle variances of long cycles
 /// shrunk further, the clean ais2klinik and w20000 files quarantined hundreds of genuine loop
 /// closures (their heading errors around long loops are wider than the short cycles show).
+/// (The examination of an accepted loop closure tests its own short cycle's angle at the
+/// scale floored at [`SCALE_FLOOR`] instead: module `online::evict`.)
 pub const ANGLE_SCALE_FLOOR: f64 = 0.25;
 /// How much heavier than χ²_d's the tail may be before the median caps the scale
 /// ([`Scale`]): `Q_0.99/Q_0.5` of the data at most this multiple of χ²_d's.
@@ -250,7 +252,8 @@ impl Scale {
         self.value_with_floor(self.floor)
     }
 
-    /// The scale s with another floor (at most the ceiling).
+    /// The scale s clamped below at `floor` instead of the scale's own (a floor above the
+    /// ceiling gives the ceiling).
     pub fn value_with_floor(&self, floor: f64) -> f64 {
         if self.len() < SCALE_MIN_CYCLES {
             return 1.0;
@@ -569,6 +572,24 @@ mod tests {
         }
         assert!((a.value() - 0.5).abs() < 0.05, "{}", a.value());
         assert!((a.tail_ratio() - 1.0).abs() < 0.1, "{}", a.tail_ratio());
+    }
+
+    /// The angle scale of data 0.02 times as noisy as declared is clamped at its floor
+    /// (ANGLE_SCALE_FLOOR, for long loops); with the floor lowered to SCALE_FLOOR (the
+    /// examination's own-cycle angle test) it is the data's 0.02; a floor above the ceiling
+    /// gives the ceiling.
+    #[test]
+    fn another_floor_keeps_the_estimate() {
+        let mut a = Scale::angle();
+        for k in 0..1000 {
+            let u = (k as f64 + 0.5) / 1000.0;
+            let z = std::f64::consts::SQRT_2 * statrs::function::erf::erf_inv(u);
+            a.push(0.02 * z * z);
+        }
+        assert_eq!(a.value(), ANGLE_SCALE_FLOOR);
+        let own = a.value_with_floor(SCALE_FLOOR);
+        assert!((own - 0.02).abs() < 0.002, "{own}");
+        assert_eq!(a.value_with_floor(2.0), 1.0);
     }
 
     /// Declared noise too tight: the scale exceeds 1, as far as the median shows and no

@@ -28,7 +28,10 @@
 //! a false loop closure accepted there can be many of the data's own standard deviations off
 //! in angle: on M3500 + 1000 random false edges, seed 7, 1690 → 1012 is 0.74 rad off on a
 //! twelve-edge cycle, 2.85 σ at the floor 0.25 and about 9 σ at M3500's own 0.0246. Only
-//! suspects are examined, so clean data never meets this test.) (The last 4 failed loop closures f through e: they pass without e, on a cycle not much
+//! suspects are examined, so clean data never meets this test; a genuine suspect's own cycle
+//! faces two tests at α_t, translation and angle: at most 2α_t of evicting it by them.)
+//!
+//! (The last 4 failed loop closures f through e: they pass without e, on a cycle not much
 //! longer than the loop e closes; or two of them, each a sharper test than e's own cycle,
 //! agree with each other — `C_{f,g}` is f, the path from f's end to g's near it, g, and the
 //! path back, both paths avoiding `G(e)` and at most `w(C_e)` long, and the two paths
