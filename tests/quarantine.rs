@@ -211,10 +211,13 @@ fn declared_wider(g: &PoseGraph, factor: f64) -> PoseGraph {
 /// the first cycles on (before 50 cycles no noise scale is estimated, and a false edge
 /// closing a long cycle passes both tests at the declared noise): the angle noise scale
 /// sharpens the angle test and the translation closures' heading noise. With the defaults
-/// (evictions by the path-triggered examination on) the pooled precision and recall were
-/// measured at 0.942 and 0.716 (without evictions 0.907 / 0.641) — short of the issue's 0.95,
-/// which is why issue 11 stays open; this guards what is reached, and a clean copy of each
-/// world quarantines nothing.
+/// (evictions by the path-triggered examination on) the pooled precision and recall are
+/// 0.979 and 0.872 (2026-12-04, since the examination tests a suspect's own cycle in angle at
+/// the data's own scale; 0.942 and 0.716 before it, 0.907 / 0.641 without evictions). The
+/// recall is short of the issue's 0.95: in two of the eight worlds (seeds 1 and 5: 13 and 20
+/// of 40 accepted) false edges accepted among the first cycles widen both noise scales, the
+/// angle scale to 1, which lets more through. This guards what is reached, and a clean copy
+/// of each world quarantines nothing.
 #[test]
 fn random_false_edges_are_caught_when_the_declared_noise_is_too_wide() {
     let config = OnlineConfig::default();
@@ -264,5 +267,5 @@ fn random_false_edges_are_caught_when_the_declared_noise_is_too_wide() {
         caught as f64 / injected as f64,
     );
     println!("precision {precision:.3}, recall {recall:.3}");
-    assert!(precision >= 0.9 && recall >= 0.68, "{precision} {recall}");
+    assert!(precision >= 0.95 && recall >= 0.85, "{precision} {recall}");
 }
