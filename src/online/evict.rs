@@ -48,13 +48,12 @@
 //! a replay reuses; all replays together are bounded by [`REPLAY_BUDGET`] times the arrivals.
 
 use std::collections::BTreeMap;
+use std::f64::consts::TAU;
 
 use smallvec::SmallVec;
 
 use super::estimate::Op;
 use super::quarantine::{Held, failed_by_far, retest_after};
-use std::f64::consts::TAU;
-
 use super::{
     ANGLE_SCALE_MAX_SD, ANGLE_TEST, NONE, OnlineError, OnlineEstimator, Step, TRANSLATION_TEST,
     replay,
@@ -493,7 +492,7 @@ impl OnlineEstimator {
     /// for e) in standard deviations at the data's own angle scale (module docs: `A(C_e)`),
     /// if the cycle is short at that scale: its γ standard deviation `√(s'_θ Σ σ²)/2π` below
     /// [`ANGLE_SCALE_MAX_SD`], so that the nearest multiple of 2π is the cycle's own unless
-    /// the residual is beyond 5 standard deviations (where a genuine cycle fails anyway).
+    /// the residual is beyond 5 standard deviations (where the test rejects anyway).
     fn own_angle_residual(&self, c: &Cycle, e: usize) -> Option<f64> {
         let n = self.delta.len();
         let (mut sum, mut var) = (0.0, 0.0);
