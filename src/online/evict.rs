@@ -429,9 +429,11 @@ impl OnlineEstimator {
             let own = (own_cycle.as_ref())
                 .and_then(|c| self.closure_with(&c.terms, &[self.noise[e]], scales.1));
             let tested = own.map_or(0.0, |x| x.chi2 / scales.0);
-            // Its own cycle's angle at the data's own scale (module docs: `A(C_e)`).
+            // Its own cycle's angle at the data's own scale (module docs: `A(C_e)`), asked
+            // when the translation has not decided.
             let far = self.config.screening.quantile_at(self.eviction_level(t));
             let angle = (own_cycle.as_ref())
+                .filter(|_| !closure::fails(tested, limit))
                 .and_then(|c| self.own_angle_residual(c, e))
                 .filter(|&r| r > far);
             // A failed loop closure blames e when it passes on a cycle not much longer than
@@ -494,23 +496,16 @@ impl OnlineEstimator {
     /// [`ANGLE_SCALE_MAX_SD`], so that the nearest multiple of 2π is the cycle's own unless
     /// the residual is beyond 5 standard deviations (where the test rejects anyway).
     fn own_angle_residual(&self, c: &Cycle, e: usize) -> Option<f64> {
-        let n = self.delta.len();
-        let (mut sum, mut var) = (0.0, 0.0);
-        for t in &c.terms {
-            let i = if (t.edge as usize) < n {
-                t.edge as usize
-            } else {
-                e
-            };
-            sum += f64::from(t.sign) * self.delta[i];
-            var += self.sigma2[i];
-        }
-        let sd = (var * self.angle_scale.value_with_floor(closure::SCALE_FLOOR)).sqrt();
+        // The chord numbered as e, so that the cycle's own sums read e's δ and σ².
+        let mut own = c.clone();
+        own.terms[0] = SignedEdge::new(e, own.terms[0].sign > 0);
+        let sd = (own.weight(&self.sigma2)
+            * self.angle_scale.value_with_floor(closure::SCALE_FLOOR))
+        .sqrt();
         if sd / TAU >= ANGLE_SCALE_MAX_SD {
             return None;
         }
-        let wrapped = sum - (sum / TAU).round() * TAU;
-        Some(wrapped.abs() / sd)
+        Some(crate::graph::wrap_angle(own.signed_sum(&self.delta)).abs() / sd)
     }
 
     /// Whether two of suspect e's recent failed loop closures that were sharper tests than
@@ -590,9 +585,9 @@ impl OnlineEstimator {
         terms.push(SignedEdge::new(n + 1, along));
         terms.extend_from_slice(&back[1..]);
         let new = [closure::EdgeNoise::of(&f), closure::EdgeNoise::of(&g)];
-        let level = closure::threshold(self.config.screening.alpha);
+        let limit = closure::threshold(self.config.screening.alpha);
         (self.closure_with(&terms, &new, scales.1))
-            .is_some_and(|x| !closure::fails(x.chi2 / scales.0, level))
+            .is_some_and(|x| !closure::fails(x.chi2 / scales.0, limit))
     }
 
     /// A new estimator that has seen every arrival so far in input order, with the `evicted`
