@@ -375,6 +375,57 @@ impl Edge {
     pub fn is_odometric(&self) -> bool {
         self.from.abs_diff(self.to) == 1
     }
+
+    /// The same measurement written the other way, `to → from`: the inverse relative pose
+    /// `Z⁻¹` and the information of the same noise seen from the other end.
+    ///
+    /// With the noise a right perturbation (`Z ⊕ ε`, g2o's convention),
+    /// `(Z ⊕ ε)⁻¹ = Z⁻¹ ⊕ ε'` with `ε' = −Ad(Z) ε`, `Ad(Z) = [[R(θ), J t], [0, 1]]`,
+    /// `J t = (t_y, −t_x)`: so `Σ' = Ad Σ Adᵀ` and `Ω' = Ad⁻ᵀ Ω Ad⁻¹`. The translation's
+    /// information gains cross terms with the angle (its noise gains `J t ε_θ`), and the
+    /// angle variance is unchanged (kept to the bit: the estimate of the headings is the same
+    /// whichever way an edge is written). `e.reversed().reversed()` is `e` up to rounding.
+    ///
+    /// ```
+    /// use so2lin::graph::{Edge, Information, Pose2};
+    /// let e = Edge::new(3, 7, Pose2::new(1.0, 0.5, 0.3), Information::diagonal(100.0, 100.0, 400.0))?;
+    /// let r = e.reversed();
+    /// assert_eq!((r.from(), r.to()), (7, 3));
+    /// assert_eq!(r.sigma2(), e.sigma2());
+    /// let back = r.reversed();
+    /// assert!((back.measurement().x - 1.0).abs() < 1e-12);
+    /// assert!((back.information().0[0] - 100.0).abs() < 1e-9);
+    /// # Ok::<(), so2lin::graph::GraphError>(())
+    /// ```
+    pub fn reversed(&self) -> Edge {
+        let z = self.measurement;
+        let (s, c) = libm::sincos(z.theta);
+        // Ad⁻¹ = [[Rᵀ, −Rᵀ J t], [0, 1]].
+        let (jx, jy) = (z.y, -z.x);
+        let inv = [
+            [c, s, -(c * jx + s * jy)],
+            [-s, c, -(-s * jx + c * jy)],
+            [0.0, 0.0, 1.0],
+        ];
+        let m = self.information.matrix();
+        // Ω' = (Ad⁻¹)ᵀ Ω Ad⁻¹.
+        let mut w = [[0.0; 3]; 3];
+        for (i, row) in w.iter_mut().enumerate() {
+            for (j, v) in row.iter_mut().enumerate() {
+                *v = (0..3)
+                    .flat_map(|k| (0..3).map(move |l| (k, l)))
+                    .map(|(k, l)| inv[k][i] * m[k][l] * inv[l][j])
+                    .sum();
+            }
+        }
+        Edge {
+            from: self.to,
+            to: self.from,
+            measurement: z.inverse(),
+            information: Information([w[0][0], w[0][1], w[0][2], w[1][1], w[1][2], w[2][2]]),
+            sigma2: self.sigma2,
+        }
+    }
 }
 
 /// Two edges whose angle information differs by more than [`MAX_INFORMATION_SPREAD`]

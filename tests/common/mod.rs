@@ -110,9 +110,8 @@ pub fn turned(e: &so2lin::graph::Edge, turns: i32) -> so2lin::graph::Edge {
     so2lin::graph::Edge::new(e.from(), e.to(), m, e.information()).unwrap()
 }
 
-/// Edge `e` written the other way: ends swapped, the inverse measurement, the same
-/// information (exact for the heading; the translation's is exact when it is isotropic and
-/// uncorrelated with the heading, as the simulator's).
+/// Edge `e` written the other way: ends swapped, the inverse measurement, the information of
+/// the same noise seen from the other end ([`so2lin::graph::Edge::reversed`]).
 pub fn reversed(e: &so2lin::graph::Edge) -> so2lin::graph::Edge {
-    so2lin::graph::Edge::new(e.to(), e.from(), e.measurement().inverse(), e.information()).unwrap()
+    e.reversed()
 }
