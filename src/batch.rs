@@ -532,7 +532,7 @@ pub struct TranslationFailure {
     pub edges: Vec<usize>,
     /// `χ²_2` of the closure divided by the noise scale ([`crate::closure`]).
     pub chi2: f64,
-    /// The threshold `−2 ln(level)` it exceeded.
+    /// The threshold it exceeded ([`crate::closure::threshold`] at `level`).
     pub threshold: f64,
     /// The level of the test.
     pub level: f64,
@@ -565,7 +565,10 @@ pub fn translation_failures(
     let chi2: Vec<Option<f64>> = basis
         .cycles
         .iter()
-        .map(|c| crate::closure::translation_closure(&c.terms, &|e| edges[e], 1.0).map(|x| x.chi2))
+        .map(|c| {
+            let noise = |e: usize| crate::closure::EdgeNoise::of(&edges[e]);
+            crate::closure::translation_closure_at_both_ends(&c.terms, &noise, 1.0).map(|x| x.chi2)
+        })
         .collect();
     let mut scale = crate::closure::Scale::default();
     for &x in chi2.iter().flatten() {

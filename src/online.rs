@@ -28,7 +28,8 @@
 //! **Quarantine** (on by default, [`OnlineConfig::quarantine`]; method
 //! [§11](crate::method#11-false-loop-closures)): a loop closure is tested *before* it is added.
 //! Its cycle is found by [`IncrementalBasis::probe`] and tested twice at the cycle's level α_t:
-//! the SE(2) translation closure ([`crate::closure`], `χ²_t / s > −4 ln α_t`, s the noise scale
+//! the SE(2) translation closure ([`crate::closure`], at both ends of the chord, the larger
+//! `χ²_t / s > −4 ln(α_t/2)`, s the noise scale
 //! estimated from the accepted cycles, [`closure::Scale`]; the edges' angle variances times the
 //! angle noise scale s_θ) and the angle: the distance r of γ's conditional mean to the nearest
 //! integer, in conditional sd, fails when `r / √s_θ > q_t` (with s_θ = 1: the screening's
@@ -464,7 +465,8 @@ impl OnlineEstimator {
 
     /// The translation closure of a cycle whose terms are graph edges and, numbered from the
     /// graph's edge count on, the edges `new` (not in the graph: a loop closure being tested),
-    /// from the closure noise kept per edge ([`closure::translation_closure_of`]).
+    /// from the closure noise kept per edge, at both ends of its chord
+    /// ([`closure::translation_closure_at_both_ends`]).
     fn closure_with(
         &self,
         terms: &[crate::cycles::SignedEdge],
@@ -476,7 +478,7 @@ impl OnlineEstimator {
             Some(k) => new.get(k).copied().flatten(),
             None => self.noise[i],
         };
-        closure::translation_closure_of(terms, &of, angle_scale)
+        closure::translation_closure_at_both_ends(terms, &of, angle_scale)
     }
 
     /// The node indices of an edge's two ends, if both are in the graph.
