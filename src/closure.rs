@@ -35,9 +35,8 @@
 //! `h_k = iσ ρ_k κ e^{−2V_k}`. They make the model the same whichever way an edge is written:
 //! an edge written the other way with its noise carried over exactly ([`Edge::reversed`]:
 //! `ε' = −Ad(Z) ε`, whose translation gains `J t ε_θ`) gives the same closure up to terms of
-//! second order in its own angle noise (`t (e^{iε_θ} − 1 − iε_θ)`); without them, a loop
-//! closure near its threshold was decided differently reversed (the information of a
-//! reversed edge has cross terms even when the edge's own has none). For small angle noise this is the
+//! second order in its own angle noise (`t (e^{iε_θ} − 1 − iε_θ)`) — the information of a
+//! reversed edge has cross terms even when the edge's own has none. For small angle noise this is the
 //! first-order propagation `Σ_e G_e Σ_e G_eᵀ`, `G_e = [R(φ) | J (r − p)]`; it stays right when the
 //! heading uncertainty accumulated around a long cycle is large (a linearised covariance then
 //! raises false alarms: measured on simulated worlds with σ_θ = 0.15–0.3 rad). The test is
