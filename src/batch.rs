@@ -561,13 +561,19 @@ pub fn translation_failures(
 ) -> Vec<TranslationFailure> {
     let level = config.level(basis.cycles.len());
     let limit = crate::closure::threshold(level);
-    let edges = graph.edges();
+    // Each edge's closure noise once (a cycle is closed from both ends, and an edge lies on
+    // many cycles).
+    let noise: Vec<Option<crate::closure::EdgeNoise>> = graph
+        .edges()
+        .iter()
+        .map(crate::closure::EdgeNoise::of)
+        .collect();
     let chi2: Vec<Option<f64>> = basis
         .cycles
         .iter()
         .map(|c| {
-            let noise = |e: usize| crate::closure::EdgeNoise::of(&edges[e]);
-            crate::closure::translation_closure_at_both_ends(&c.terms, &noise, 1.0).map(|x| x.chi2)
+            crate::closure::translation_closure_at_both_ends(&c.terms, &|e| noise[e], 1.0)
+                .map(|x| x.chi2)
         })
         .collect();
     let mut scale = crate::closure::Scale::default();

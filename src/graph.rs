@@ -127,6 +127,18 @@ impl Information {
         Self([ixx, 0.0, 0.0, iyy, 0.0, itt])
     }
 
+    /// The information stored by a symmetric matrix's upper triangle (its lower one is not
+    /// read): the inverse of [`Self::matrix`].
+    ///
+    /// ```
+    /// use so2lin::graph::Information;
+    /// let i = Information([44.4, 1.1, 0.3, 376.0, 0.7, 9807.0]);
+    /// assert_eq!(Information::from_symmetric(i.matrix()), i);
+    /// ```
+    pub fn from_symmetric(m: [[f64; 3]; 3]) -> Self {
+        Self([m[0][0], m[0][1], m[0][2], m[1][1], m[1][2], m[2][2]])
+    }
+
     /// The full symmetric matrix, row-major.
     pub fn matrix(&self) -> [[f64; 3]; 3] {
         let [a, b, c, d, e, f] = self.0;
@@ -422,7 +434,7 @@ impl Edge {
             from: self.to,
             to: self.from,
             measurement: z.inverse(),
-            information: Information([w[0][0], w[0][1], w[0][2], w[1][1], w[1][2], w[2][2]]),
+            information: Information::from_symmetric(w),
             sigma2: self.sigma2,
         }
     }
