@@ -5,7 +5,9 @@
 //!   as a robot would (M3500 and city10000 when the datasets are present, simulated worlds
 //!   always; `M3500+1000` is M3500 with 1000 random false loop closures injected as
 //!   `so2lin inject --outliers 1000 --seed 1` does); `stream/<input>_logged` the same with an
-//!   MCAP recorder attached (writing to memory).
+//!   MCAP recorder attached (writing to memory); `stream/M3500+1000_seed<S>_screening`: M3500
+//!   with 1000 random false loop closures (`--seed S`, 1–7) through the screening alone, no
+//!   estimate kept or read (`so2lin stream FILE --estimate none`), issue 11's cost.
 //! - `step/sim<N>/{odometry,loop_closure}`: one more step on a simulated world of N poses
 //!   already streamed: an odometry step to a new pose, or a loop closure re-observing the
 //!   latest odometry edge (a local loop). The state keeps growing across iterations, as on a
@@ -40,13 +42,13 @@ fn dataset(name: &str) -> Option<Vec<Edge>> {
 }
 
 /// A dataset with `k` random false loop closures (the Vertigo protocol of `so2lin inject`,
-/// seed 1), in robot order.
-fn corrupted(name: &str, k: usize) -> Option<Vec<Edge>> {
+/// `--seed seed`), in robot order.
+fn corrupted(name: &str, k: usize, seed: u64) -> Option<Vec<Edge>> {
     let (graph, _) = so2lin::io::read_graph(dataset_dir().join(name), Default::default()).ok()?;
     let config = OutlierConfig {
         count: k,
         kind: OutlierKind::Random,
-        seed: 1,
+        seed,
     };
     let bad = inject_outliers(&graph, &config).ok()?;
     Some(robot_order(bad.graph.edges()))
@@ -58,6 +60,20 @@ fn simulated(poses: usize) -> Vec<Edge> {
         .graph
         .edges()
         .to_vec()
+}
+
+/// Every edge through `add_edge` with no estimate kept or read: the screening and the
+/// quarantine alone.
+fn screened(edges: &[Edge]) -> OnlineEstimator {
+    let config = OnlineConfig {
+        estimate_every_step: false,
+        ..OnlineConfig::default()
+    };
+    let mut est = OnlineEstimator::new(config).expect("valid config");
+    for e in edges {
+        est.add_edge(*e).expect("valid edge");
+    }
+    est
 }
 
 /// Every edge through `add_edge`, reading the newest pose after each (as a robot does).
@@ -81,7 +97,7 @@ fn bench_stream(c: &mut Criterion) {
         }
     }
     // Issue 11's cost: M3500 with 1000 false loop closures, quarantine and evictions on.
-    if let Some(edges) = corrupted("M3500.g2o", 1000) {
+    if let Some(edges) = corrupted("M3500.g2o", 1000, 1) {
         inputs.push(("M3500+1000".to_owned(), edges));
     }
     let mut group = c.benchmark_group("stream");
@@ -90,6 +106,16 @@ fn bench_stream(c: &mut Criterion) {
         group.bench_function(name.as_str(), |b| {
             b.iter(|| streamed(black_box(edges)).counters())
         });
+    }
+    // Issue 11's cost as it states it: the screening alone (no estimate kept or read, as
+    // `so2lin stream FILE --estimate none`), M3500 + 1000 random false loop closures, the
+    // seeds the README's cost paragraph reports.
+    for seed in 1..=7 {
+        if let Some(edges) = corrupted("M3500.g2o", 1000, seed) {
+            group.bench_function(format!("M3500+1000_seed{seed}_screening"), |b| {
+                b.iter(|| screened(black_box(&edges)).counters())
+            });
+        }
     }
     // Recording overhead: the same stream with an MCAP recorder writing to memory.
     for (name, edges) in inputs

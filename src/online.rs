@@ -84,7 +84,8 @@
 //! without it (the current scales standing in for the replay's own until it has 50 cycles):
 //! from the start at the first rebuild, O(m) for that one step, and from then on from the
 //! latest checkpoint before e's arrival (module `checkpoint`: a copy of the state kept every
-//! quarter of the arrivals; a stream that has quarantined something is rebuilt from the start
+//! quarter of the arrivals, and one just before a doubtful loop closure — a long cycle, or a
+//! translation statistic above half its threshold — is accepted; a stream that has quarantined something is rebuilt from the start
 //! once, early, as soon as its translation closures give a noise scale, so that its first
 //! cycles are re-tested at it); none of this on clean data (no clean benchmark file of
 //! ≤ 25 000 edges quarantines or evicts anything). The replay reuses what it can: a quarantined loop closure arriving again takes
@@ -356,6 +357,9 @@ pub struct OnlineEstimator {
     /// Arrivals between two checkpoints, at least ([`checkpoint::MIN_INTERVAL`]; tests set
     /// it lower to replay from many checkpoints in small worlds).
     checkpoint_interval: usize,
+    /// Whether copies are taken before doubtful loop closures
+    /// ([`checkpoint::doubtful`]; tests turn them off to compare).
+    doubtful_checkpoints: bool,
 }
 
 /// Cycles whose conditional sd of γ is below this feed the angle noise scale: their nearest
@@ -425,6 +429,7 @@ impl OnlineEstimator {
             predicted: 0,
             checkpoints: Vec::new(),
             checkpoint_interval: checkpoint::MIN_INTERVAL,
+            doubtful_checkpoints: true,
         })
     }
 
@@ -465,20 +470,22 @@ impl OnlineEstimator {
 
     /// The translation closure of a cycle whose terms are graph edges and, numbered from the
     /// graph's edge count on, the edges `new` (not in the graph: a loop closure being tested),
-    /// from the closure noise kept per edge, at both ends of its chord
-    /// ([`closure::translation_closure_at_both_ends`]).
+    /// from the closure noise kept per edge, at both ends of its chord — the second end left
+    /// out when the first already fails every test the caller puts to it, `decided(χ²)`
+    /// ([`closure::translation_closure_unless_first_fails`]).
     fn closure_with(
         &self,
         terms: &[crate::cycles::SignedEdge],
         new: &[Option<closure::EdgeNoise>],
         angle_scale: f64,
+        decided: &dyn Fn(f64) -> bool,
     ) -> Option<closure::Closure> {
         let n = self.noise.len();
         let of = |i: usize| match i.checked_sub(n) {
             Some(k) => new.get(k).copied().flatten(),
             None => self.noise[i],
         };
-        closure::translation_closure_at_both_ends(terms, &of, angle_scale)
+        closure::translation_closure_unless_first_fails(terms, &of, angle_scale, decided)
     }
 
     /// The node indices of an edge's two ends, if both are in the graph.
@@ -594,12 +601,30 @@ impl OnlineEstimator {
         debug_assert_eq!(self.noise.len(), e, "one closure noise per graph edge");
         if quarantine {
             let limit = closure::threshold(level);
-            let angle_scale = self.angle_scale();
+            let far = closure::threshold(self.eviction_level(self.model.len()));
+            let (angle_scale, translation_scale) = (self.angle_scale(), self.translation_scale());
+            // Failing both thresholds, the test's by far, at the first end decides everything
+            // below, the quarantine's re-test schedule included.
+            let decided = |chi2: f64| {
+                let tested = chi2 / translation_scale;
+                closure::fails(tested, limit)
+                    && closure::fails(tested, far)
+                    && quarantine::translation_by_far(tested, limit)
+            };
             let translation =
-                (self.closure_with(&cycle.terms, &[noise], angle_scale)).map(|c| c.chi2);
+                (self.closure_with(&cycle.terms, &[noise], angle_scale, &decided)).map(|c| c.chi2);
+            // A doubtful loop closure that passes: a copy of the state before it, from which
+            // a replay starts should it be evicted (module `checkpoint`).
+            let doubtful = |chi2: f64| {
+                let tested = chi2 / translation_scale;
+                !closure::fails(tested, limit)
+                    && checkpoint::doubtful(cycle.terms.len(), tested, limit)
+            };
+            if arrival && translation.is_some_and(doubtful) {
+                self.checkpoint_before_doubtful();
+            }
             if let Some(chi2) = translation {
-                let tested = chi2 / self.translation_scale();
-                let far = closure::threshold(self.eviction_level(self.model.len()));
+                let tested = chi2 / translation_scale;
                 if !closure::fails(tested, far) {
                     self.scale.push(chi2);
                 }

@@ -419,6 +419,12 @@ impl IncrementalBasis {
         self.cycles
     }
 
+    /// Whether landmarks are kept (from then on a probe leaves the basis as it was, but for
+    /// its scratch).
+    pub fn has_landmarks(&self) -> bool {
+        self.landmarks.count() > 0
+    }
+
     /// Whether two nodes are connected by the edges so far.
     pub fn connected(&mut self, a: usize, b: usize) -> bool {
         self.components.find(a) == self.components.find(b)

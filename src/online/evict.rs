@@ -53,7 +53,7 @@ use std::f64::consts::TAU;
 use smallvec::SmallVec;
 
 use super::estimate::Op;
-use super::quarantine::{Held, failed_by_far, retest_after};
+use super::quarantine::{Held, failed_by_far, retest_after, translation_by_far};
 use super::{
     ANGLE_SCALE_MAX_SD, ANGLE_TEST, NONE, OnlineError, OnlineEstimator, Step, TRANSLATION_TEST,
     replay,
@@ -334,8 +334,9 @@ impl OnlineEstimator {
             return false;
         };
         let noise = closure::EdgeNoise::of(&failed);
-        (self.closure_with(&cycle.terms, &[noise], scales.1))
-            .is_some_and(|x| !closure::fails(x.chi2 / scales.0, closure::threshold(level)))
+        let fails = |chi2: f64| closure::fails(chi2 / scales.0, closure::threshold(level));
+        (self.closure_with(&cycle.terms, &[noise], scales.1, &fails))
+            .is_some_and(|x| !fails(x.chi2))
     }
 
     /// Accepted loop closure e and the accepted loop closures of its place
@@ -426,8 +427,17 @@ impl OnlineEstimator {
             let (a, b) = self.graph.endpoints()[e];
             let group = self.place_group(e);
             let own_cycle = self.basis.probe_avoiding(a, b, &group);
+            let per_cycle = closure::threshold(self.config.screening.alpha);
+            // Failing both thresholds, the eviction's by far, at the first end decides
+            // everything below, the re-test schedule of the evicted edge included.
+            let decided = |chi2: f64| {
+                let tested = chi2 / scales.0;
+                closure::fails(tested, limit)
+                    && closure::fails(tested, per_cycle)
+                    && translation_by_far(tested, limit)
+            };
             let own = (own_cycle.as_ref())
-                .and_then(|c| self.closure_with(&c.terms, &[self.noise[e]], scales.1));
+                .and_then(|c| self.closure_with(&c.terms, &[self.noise[e]], scales.1, &decided));
             let tested = own.map_or(0.0, |x| x.chi2 / scales.0);
             // Its own cycle's angle at the data's own scale (module docs: `A(C_e)`), asked
             // when the translation has not decided.
@@ -445,7 +455,7 @@ impl OnlineEstimator {
             // Blame by one failed loop closure is weak evidence (it may pass without e only
             // because the other path is longer): e's own cycle must also be doubtful, beyond
             // the per-cycle threshold; or two of them must pass without e.
-            let doubtful = closure::fails(tested, closure::threshold(self.config.screening.alpha));
+            let doubtful = closure::fails(tested, per_cycle);
             // The loop closures that failed through e pass without it (at the per-cycle level,
             // as a re-test): e is to blame. Asked after e's own cycle (short), only until it
             // decides: their paths may cross the map (a false edge's does).
@@ -586,8 +596,8 @@ impl OnlineEstimator {
         terms.extend_from_slice(&back[1..]);
         let new = [closure::EdgeNoise::of(&f), closure::EdgeNoise::of(&g)];
         let limit = closure::threshold(self.config.screening.alpha);
-        (self.closure_with(&terms, &new, scales.1))
-            .is_some_and(|x| !closure::fails(x.chi2 / scales.0, limit))
+        let fails = |chi2: f64| closure::fails(chi2 / scales.0, limit);
+        (self.closure_with(&terms, &new, scales.1, &fails)).is_some_and(|x| !fails(x.chi2))
     }
 
     /// A new estimator that has seen every arrival so far in input order, with the `evicted`
@@ -608,6 +618,7 @@ impl OnlineEstimator {
                 let mut fresh = Self::new(self.config)?;
                 fresh.warm = Some(warm);
                 fresh.checkpoint_interval = self.checkpoint_interval;
+                fresh.doubtful_checkpoints = self.doubtful_checkpoints;
                 fresh.estimate.push(Op::Defer);
                 fresh
             }

@@ -50,12 +50,16 @@ pub(super) fn retest_after(cycles: usize, far: bool) -> usize {
 /// threshold.
 pub(super) fn failed_by_far(rejected: &RejectedEdge) -> bool {
     let ratio = rejected.statistic / rejected.threshold;
-    let excess = if rejected.test == ANGLE_TEST {
-        ratio * ratio
+    if rejected.test == ANGLE_TEST {
+        ratio * ratio > FAR
     } else {
-        ratio
-    };
-    excess > FAR
+        translation_by_far(rejected.statistic, rejected.threshold)
+    }
+}
+
+/// Whether a translation statistic `tested` fails its `threshold` by far ([`failed_by_far`]).
+pub(super) fn translation_by_far(tested: f64, threshold: f64) -> bool {
+    tested / threshold > FAR
 }
 
 /// A test failed by far: its χ² (the angle residual squared) above this multiple of the

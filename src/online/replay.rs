@@ -19,6 +19,7 @@
 //! shorter), as a new search's would be.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 use crate::cycles::{Cycle, SignedEdge};
 
@@ -33,7 +34,9 @@ pub(crate) struct Paths {
     entered: Vec<(u32, u32)>,
     /// The cycle each quarantined loop closure failed on at its arrival, by input index; its
     /// path's edges by input index (term 0, the chord, is renumbered when it is reused).
-    failed: BTreeMap<usize, Cycle>,
+    /// Shared: the copies of the estimator a checkpoint takes ([`super::checkpoint`]) copy
+    /// pointers, not the paths (a random false edge's crosses the map: hundreds of edges).
+    failed: BTreeMap<usize, Arc<Cycle>>,
 }
 
 impl Paths {
@@ -61,7 +64,7 @@ impl Paths {
         for t in &mut by_input.terms[1..] {
             t.edge = input_of[t.edge as usize];
         }
-        self.failed.insert(input, by_input);
+        self.failed.insert(input, Arc::new(by_input));
     }
 }
 
@@ -97,7 +100,7 @@ impl Hints {
         if self.diverged {
             return None;
         }
-        let mut cycle = self.replaced.failed.get(&input)?.clone();
+        let mut cycle = Cycle::clone(self.replaced.failed.get(&input)?);
         cycle.terms[0] = SignedEdge::new(chord, true);
         for t in &mut cycle.terms[1..] {
             t.edge = own.edge_of(t.edge as usize)?;
