@@ -85,8 +85,8 @@
 //! from the start at the first rebuild, O(m) for that one step, and from then on from the
 //! latest checkpoint before e's arrival (module `checkpoint`: a copy of the state kept every
 //! quarter of the arrivals, and one just before a doubtful loop closure — a long cycle, or a
-//! translation statistic above half its threshold — is accepted; a stream that has quarantined something is rebuilt from the start
-//! once, early, as soon as its translation closures give a noise scale, so that its first
+//! translation statistic above half its threshold — is accepted; a stream that has
+//! quarantined something is rebuilt from the start once, early, as soon as its translation closures give a noise scale, so that its first
 //! cycles are re-tested at it); none of this on clean data (no clean benchmark file of
 //! ≤ 25 000 edges quarantines or evicts anything). The replay reuses what it can: a quarantined loop closure arriving again takes
 //! the cycle it failed on before while the replay's graph is a subgraph of the replaced one's
