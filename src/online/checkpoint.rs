@@ -33,13 +33,14 @@
 //!
 //! **Copies before doubtful loop closures.** The loop closures an examination evicts are
 //! recent, but the regular copies are far apart: on M3500 + 1 000 random false loop closures
-//! (seeds 1–7, robot order) the eleven evictions after the warm-up came 15–250 arrivals after
-//! the evicted edge's arrival, and their replays started from checkpoints 460–980 arrivals
-//! before it — nine tenths of a replay re-ran arrivals whose outcome was known. And the edges
-//! evicted were, at their acceptance, the exceptions among the loop closures accepted: their
-//! cycles long (31–177 terms, against at most 64 for all but one or two of the 1 954 accepted
-//! per stream) or their translation statistic above half its threshold (0.56–0.81 of it,
-//! against at most 0–6 of the accepted per stream). So a copy is also taken just before such
+//! (seeds 1–7, robot order) the nine evictions after the first arrivals came 15–249 arrivals
+//! after the evicted edge's arrival, and their replays started from checkpoints 406–981
+//! arrivals before it — nine tenths of a replay re-ran arrivals whose outcome was known. And
+//! the edges evicted were, at their acceptance, the exceptions among the loop closures
+//! accepted: cycles of 142–177 terms (M3500's return; of the 1 952–1 959 loop closures a
+//! stream accepts, one or two have more than 64), or of 31 and 46 terms with a translation
+//! statistic at 0.56 and 0.71 of its threshold (above half for 0–6 of those accepted per
+//! stream). So a copy is also taken just before such
 //! a **doubtful** loop closure is accepted ([`doubtful`]: a cycle of more than
 //! [`DOUBTFUL_TERMS`] terms, or a translation statistic above [`DOUBTFUL_STATISTIC`] of its
 //! threshold), at least a [`DOUBTFUL_INTERVAL_FRACTION`]-th of the arrivals after the last such
