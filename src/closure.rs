@@ -134,7 +134,7 @@ pub fn translation_closure_unless_first_fails(
     if fails_at_first(here.chi2) {
         return Some(here);
     }
-    let there = translation_closure_of(&other_way_round(terms), edge, angle_scale)?;
+    let there = closure_along(reversed_loop(terms), edge, angle_scale)?;
     // (A NaN statistic is kept: it fails the test.)
     Some(if there.chi2 > here.chi2 || there.chi2.is_nan() {
         there
@@ -537,16 +537,20 @@ impl EdgeNoise {
 /// other end: the chord against its direction, then the path in reverse order, each edge
 /// against.
 pub fn other_way_round(terms: &[SignedEdge]) -> SmallVec<[SignedEdge; 8]> {
+    reversed_loop(terms).collect()
+}
+
+/// [`other_way_round`] as an iterator (the closure's second end reads it without a copy).
+fn reversed_loop(terms: &[SignedEdge]) -> impl Iterator<Item = SignedEdge> + '_ {
     let flip = |t: &SignedEdge| SignedEdge {
         edge: t.edge,
         sign: -t.sign,
     };
-    match terms.split_first() {
-        Some((chord, path)) => std::iter::once(flip(chord))
-            .chain(path.iter().rev().map(flip))
-            .collect(),
-        None => SmallVec::new(),
-    }
+    let (chord, path) = match terms.split_first() {
+        Some((chord, path)) => (Some(chord), path),
+        None => (None, terms),
+    };
+    chord.into_iter().chain(path.iter().rev()).map(flip)
 }
 
 /// The translation closure of a cycle given as signed edges in traversal order; `edge(e)`
@@ -568,6 +572,15 @@ pub fn translation_closure(
 /// [`translation_closure`] from each edge's [`EdgeNoise`] (`None`: singular information).
 pub fn translation_closure_of(
     terms: &[SignedEdge],
+    edge: &dyn Fn(usize) -> Option<EdgeNoise>,
+    angle_scale: f64,
+) -> Option<Closure> {
+    closure_along(terms.iter().copied(), edge, angle_scale)
+}
+
+/// [`translation_closure_of`] of the terms in the order given.
+fn closure_along(
+    terms: impl Iterator<Item = SignedEdge>,
     edge: &dyn Fn(usize) -> Option<EdgeNoise>,
     angle_scale: f64,
 ) -> Option<Closure> {

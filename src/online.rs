@@ -603,28 +603,25 @@ impl OnlineEstimator {
             let limit = closure::threshold(level);
             let far = closure::threshold(self.eviction_level(self.model.len()));
             let (angle_scale, translation_scale) = (self.angle_scale(), self.translation_scale());
-            // Failing both thresholds, the test's by far, at the first end decides everything
-            // below, the quarantine's re-test schedule included.
+            // Failing the eviction level's threshold and the test's by far (so the test's own)
+            // at the first end decides everything below, the re-test schedule included.
             let decided = |chi2: f64| {
                 let tested = chi2 / translation_scale;
-                closure::fails(tested, limit)
-                    && closure::fails(tested, far)
-                    && quarantine::translation_by_far(tested, limit)
+                closure::fails(tested, far) && quarantine::translation_by_far(tested, limit)
             };
             let translation =
                 (self.closure_with(&cycle.terms, &[noise], angle_scale, &decided)).map(|c| c.chi2);
-            // A doubtful loop closure that passes: a copy of the state before it, from which
-            // a replay starts should it be evicted (module `checkpoint`).
-            let doubtful = |chi2: f64| {
-                let tested = chi2 / translation_scale;
-                !closure::fails(tested, limit)
-                    && checkpoint::doubtful(cycle.terms.len(), tested, limit)
-            };
-            if arrival && translation.is_some_and(doubtful) {
-                self.checkpoint_before_doubtful();
-            }
             if let Some(chi2) = translation {
                 let tested = chi2 / translation_scale;
+                // A doubtful loop closure that passes: a copy of the state before anything of
+                // it is kept, from which a replay starts should it be evicted (module
+                // `checkpoint`).
+                if arrival
+                    && !closure::fails(tested, limit)
+                    && checkpoint::doubtful(cycle.terms.len(), tested, limit)
+                {
+                    self.checkpoint_before_doubtful();
+                }
                 if !closure::fails(tested, far) {
                     self.scale.push(chi2);
                 }

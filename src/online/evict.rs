@@ -428,13 +428,12 @@ impl OnlineEstimator {
             let group = self.place_group(e);
             let own_cycle = self.basis.probe_avoiding(a, b, &group);
             let per_cycle = closure::threshold(self.config.screening.alpha);
-            // Failing both thresholds, the eviction's by far, at the first end decides
-            // everything below, the re-test schedule of the evicted edge included.
+            // Failing the per-cycle threshold and the eviction's by far (so the eviction's own)
+            // at the first end decides everything below, the evicted edge's re-test schedule
+            // included.
             let decided = |chi2: f64| {
                 let tested = chi2 / scales.0;
-                closure::fails(tested, limit)
-                    && closure::fails(tested, per_cycle)
-                    && translation_by_far(tested, limit)
+                closure::fails(tested, per_cycle) && translation_by_far(tested, limit)
             };
             let own = (own_cycle.as_ref())
                 .and_then(|c| self.closure_with(&c.terms, &[self.noise[e]], scales.1, &decided));
