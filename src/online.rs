@@ -132,14 +132,16 @@
 //! and [`OnlineEstimator::orientation`] back-substitute along one path,
 //! [`OnlineEstimator::orientations`] and [`OnlineEstimator::poses`] over the whole factor.
 //!
-//! **No stalls**: the factor of P_UU (when it grows: module `predict`) and the estimate's
-//! factors are renewed in a fill-reducing
-//! order on a worker thread, which is sent every later change and applies it itself; the new
-//! factor is collected once the live factor has done as much work (entries of the factor
-//! visited, counted) as the builder is expected to need, and swapped in (`online/renewal.rs`),
-//! so no step replays a factor, and results do not depend on the threads' timing. The one
-//! rebuild a step may do is P_UU's, when the screening returns to it from predictions with a
-//! long backlog (module `predict`).
+//! **No stalls**: the estimate's factors, and the factor of P_UU (when it grows: module
+//! `predict`) once its rebuild is expected to cost more than about 1.5 ms, are renewed in a
+//! fill-reducing order on a worker thread, which is sent every later change and applies it
+//! itself; the new factor is collected once the live factor has done as much work (entries
+//! of the factor visited, counted) as the builder is expected to need, and swapped in
+//! (`online/renewal.rs`), so no step replays a large factor, and results do not depend on the
+//! threads' timing. A step rebuilds P_UU's factor itself when the rebuild is small (counted
+//! work, about 1.5 ms or less on the development machine: a builder beside the steps costs
+//! them more than that there, `online/reorder.rs`), or when the screening returns to it from
+//! predictions with a long backlog (module `predict`).
 
 use serde::Serialize;
 use smallvec::SmallVec;
@@ -360,6 +362,9 @@ pub struct OnlineEstimator {
     /// Whether copies are taken before doubtful loop closures
     /// ([`checkpoint::doubtful`]; tests turn them off to compare).
     doubtful_checkpoints: bool,
+    /// Renewals of the P_UU factor expected to cost at most this much work are built in the
+    /// step ([`reorder::REORDER_IN_STEP_WORK`]; tests set 0 or ∞ to take one path only).
+    reorder_in_step_work: f64,
 }
 
 /// Cycles whose conditional sd of γ is below this feed the angle noise scale: their nearest
@@ -430,6 +435,7 @@ impl OnlineEstimator {
             checkpoints: Vec::new(),
             checkpoint_interval: checkpoint::MIN_INTERVAL,
             doubtful_checkpoints: true,
+            reorder_in_step_work: reorder::REORDER_IN_STEP_WORK,
         })
     }
 

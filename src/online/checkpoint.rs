@@ -242,6 +242,7 @@ impl OnlineEstimator {
             checkpoints: Vec::new(),
             checkpoint_interval: self.checkpoint_interval,
             doubtful_checkpoints: self.doubtful_checkpoints,
+            reorder_in_step_work: self.reorder_in_step_work,
         }
     }
 

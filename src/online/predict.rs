@@ -116,7 +116,7 @@ pub(super) fn with_backlog(
 const BACKLOG_REBUILD_FRACTION: usize = 8;
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use crate::graph::{Edge, Information};
     use crate::online::{OnlineConfig, OnlineEstimator, Step, StepKind, robot_order};
     use crate::sim::{OutlierConfig, OutlierKind, SimConfig, inject_outliers, simulate};
@@ -134,8 +134,9 @@ mod tests {
         (a - b).abs() <= 1e-9 * a.abs().max(b.abs()).max(1.0)
     }
 
-    /// The same step up to the moments' rounding (1e-9).
-    fn same_step(a: &Step, b: &Step) -> bool {
+    /// The same step up to the moments' rounding (1e-9): the same decisions, re-screens and
+    /// quarantines (module `reorder`'s tests use it too).
+    pub(in crate::online) fn same_step(a: &Step, b: &Step) -> bool {
         let kinds = match (&a.kind, &b.kind) {
             (StepKind::Cycle(x), StepKind::Cycle(y)) => {
                 (x.cycle, x.candidates, x.decision) == (y.cycle, y.candidates, y.decision)

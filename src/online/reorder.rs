@@ -3,9 +3,24 @@
 //! determined lets L fill in (conditioning a new cycle solves `L y = P_U,new`, whose cost is
 //! the entries of L it reaches), while the conditional moments `mean = μ + yᵀz`,
 //! `var = P − ‖y‖²` do not depend on the order. So when L's fill per row has grown by half,
-//! L is rebuilt in approximate-minimum-degree order beside the live one on the worker thread
-//! (module `renewal`), sent every later cycle and determination, and collected at a count of
-//! the live factor's work fixed in advance.
+//! L is rebuilt in approximate-minimum-degree order:
+//!
+//! - **in the step**, when the rebuild is expected to cost at most [`REORDER_IN_STEP_WORK`]
+//!   (counted work: about 1.5 ms on the development machine, M3500's factors but its last);
+//! - otherwise **beside** the live one on the worker thread (module `renewal`), sent every later
+//!   cycle and determination, and collected at a count of the live factor's work fixed in
+//!   advance, so that no step waits for a large rebuild.
+//!
+//! Why not always beside: on the development machine (two virtual cores) a builder running
+//! beside the steps made the steps around it slower and their latencies noisy — chunks freed on
+//! one thread and allocated on the other share the allocator's locks, and the factor renewed
+//! beside fills on meanwhile (a renewal is collected 100–150 steps after it starts on M3500).
+//! Measured on clean M3500 in robot order with the screening alone, p99 of a step against the
+//! single-threaded build before issue 11 (which rebuilt in the step, 2–3 ms): 1.8–1.9× with
+//! every renewal beside, 1.14–1.25× with the small ones in the step (nine alternating runs;
+//! the worst step 1.1 ms against 1.5–2.2 ms). The rebuild in the step decides as the renewal
+//! beside does (the same cycles, values and order; the conditional moments agree to
+//! rounding).
 
 use super::{OnlineEstimator, laplacian, renewal};
 use crate::gamma::{Conditioner, GammaModel};
@@ -39,12 +54,21 @@ const REORDER_FILL_RATIO: f64 = 1.5;
 const REORDER_WORK_MARGIN: f64 = 1.5;
 /// The P_UU builder's fill-reducing order, in entries of a solve per nonzero of P_γ.
 const ORDER_WORK_PER_NONZERO: f64 = 20.0;
+/// A renewal of the P_UU factor expected to cost at most this much work (the units of
+/// [`Conditioner::take_work`], its order counted by `ORDER_WORK_PER_NONZERO`) is built in the
+/// step that starts it instead of beside it ([`OnlineEstimator::maybe_reorder`]). On the
+/// development machine that is a rebuild of up to about 1.5 ms (M3500: 1 227 determined cycles,
+/// 1.3 ms, of which 0.7 ms the order; its last renewal, 1 546 cycles and 1.8 ms, is built
+/// beside), below the 2 ms bound on M3500's worst step.
+pub(super) const REORDER_IN_STEP_WORK: f64 = 500_000.0;
 
 impl OnlineEstimator {
     /// Renew the factor of P_UU in a fill-reducing order when appending in chronological
     /// order has made it much denser than a reordered one would be (amortised: its fill per
-    /// row must grow by half first). Conditional moments do not depend on the order. The new
-    /// factor is built **beside** the live one on another thread, from a snapshot of the
+    /// row must grow by half first). Conditional moments do not depend on the order. A rebuild
+    /// expected to cost at most [`Self::reorder_in_step_work`] (by default
+    /// [`REORDER_IN_STEP_WORK`]) is done here ([`Self::reorder_in_step`]). A larger one is
+    /// built **beside** the live one on another thread, from a snapshot of the
     /// determined cycles, collected once the live factor has done [`REORDER_WORK_MARGIN`]
     /// times the work the builder is expected to do, and at least a number of steps later
     /// (counts, so the run is deterministic whatever the threads' timing; a step waits only if
@@ -104,6 +128,10 @@ impl OnlineEstimator {
         // nonzeros, against 5 ns per entry).
         let expected = rows as f64 * self.rebuild_work_per_row.max(per_row)
             + ORDER_WORK_PER_NONZERO * self.model.nnz() as f64;
+        if expected <= self.reorder_in_step_work {
+            self.reorder_in_step();
+            return;
+        }
         self.cond_work += self.screener.cond.take_work();
         let worker = &mut self.worker;
         if let Some(build) = renewal::Beside::start(worker, "so2lin-reorder", build, apply, finish)
@@ -118,6 +146,21 @@ impl OnlineEstimator {
                 determined_sent: rows,
             });
         }
+    }
+
+    /// Rebuild the factor of P_UU in a fill-reducing order here, in the step (a small one:
+    /// [`REORDER_IN_STEP_WORK`]). The old factor is freed here too (on the worker its frees
+    /// contended with this thread's allocations: module docs). If the rebuild fails (it cannot
+    /// for cycles the live factor holds) the live factor goes on.
+    fn reorder_in_step(&mut self) {
+        let determined = self.screener.cond.determined();
+        let Ok(mut fresh) = Conditioner::rebuilt(&self.model, &determined, 0) else {
+            return;
+        };
+        self.rebuild_work_per_row = fresh.take_work() as f64 / fresh.len().max(1) as f64;
+        let old = std::mem::replace(&mut self.screener.cond, fresh);
+        drop(old);
+        self.after_reorder();
     }
 
     /// Advance a renewal of the P_UU factor (see [`Self::maybe_reorder`]): tell the builder
@@ -160,8 +203,82 @@ impl OnlineEstimator {
     pub(super) fn install_conditioner(&mut self, fresh: Conditioner) {
         let old = std::mem::replace(&mut self.screener.cond, fresh);
         self.worker.retire("so2lin-reorder", old);
+        self.after_reorder();
+    }
+
+    /// The fill the next renewal is measured against is the new factor's; one more reorder.
+    fn after_reorder(&mut self) {
         let rows = self.screener.cond.len().max(1);
         self.fill_after_reorder = self.screener.cond.factor_nnz() as f64 / rows as f64;
         self.counters.reorders += 1;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::gamma::Conditioner;
+    use crate::online::predict::tests::same_step;
+    use crate::online::{OnlineConfig, OnlineEstimator, robot_order};
+    use crate::sim::{SimConfig, simulate};
+
+    /// The factor of P_UU renewed in the step (every renewal), beside it (every renewal) or by
+    /// the default rule decides every step alike, ends with the same determined cycles, and
+    /// holds what a factor rebuilt from nothing holds (its χ² and a new cycle's moments to
+    /// 1e-9): the two paths are one renewal, and the rule choosing between them changes
+    /// neither a decision nor an answer. The screening alone (no estimate read: every cycle
+    /// conditioned through P_UU, as `so2lin stream --estimate none` runs).
+    #[test]
+    fn renewals_in_the_step_or_beside_it_decide_alike() {
+        let world = simulate(&SimConfig::new(2500, 41)).unwrap();
+        let edges = robot_order(world.graph.edges());
+        let run = |in_step_work: f64| {
+            let config = OnlineConfig {
+                estimate_every_step: false,
+                ..OnlineConfig::default()
+            };
+            let mut est = OnlineEstimator::new(config).unwrap();
+            est.reorder_in_step_work = in_step_work;
+            let steps: Vec<_> = edges.iter().map(|&e| est.add_edge(e).unwrap()).collect();
+            (est, steps)
+        };
+        let (beside, steps_beside) = run(0.0);
+        let (in_step, steps_in_step) = run(f64::INFINITY);
+        let (default, steps_default) = run(super::REORDER_IN_STEP_WORK);
+        for (name, est) in [("beside", &beside), ("in the step", &in_step)] {
+            assert!(
+                est.counters().reorders >= 3,
+                "{name}: {} renewals",
+                est.counters().reorders
+            );
+        }
+        assert_eq!(in_step.cond_waits, 0, "no builder waited for in the step");
+        for (k, ((b, i), d)) in (steps_beside.iter().zip(&steps_in_step))
+            .zip(&steps_default)
+            .enumerate()
+        {
+            assert!(same_step(b, i) && same_step(b, d), "step {k}");
+        }
+        let mut sets: Vec<Vec<(usize, i64)>> = [&beside, &in_step, &default]
+            .iter()
+            .map(|e| e.screener.cond.determined())
+            .collect();
+        for s in &mut sets {
+            s.sort_unstable();
+        }
+        assert!(sets[0].len() > 256 && sets[0] == sets[1] && sets[0] == sets[2]);
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs()).max(1.0);
+        let model = &in_step.model;
+        let mut fresh = Conditioner::rebuilt(model, &sets[0], 0).unwrap();
+        let undetermined: Vec<usize> = (0..model.len())
+            .filter(|&c| sets[0].binary_search_by_key(&c, |&(d, _)| d).is_err())
+            .collect();
+        for est in [&beside, &in_step, &default] {
+            let mut live = est.screener.cond.clone();
+            assert!(close(live.chi2(), fresh.chi2()));
+            for &c in undetermined.iter().take(20) {
+                let (m, f) = (live.moments(model, c), fresh.moments(model, c));
+                assert!(close(m.mean, f.mean) && close(m.var, f.var), "cycle {c}");
+            }
+        }
     }
 }
