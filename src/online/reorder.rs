@@ -11,15 +11,17 @@
 //!   cycle and determination, and collected at a count of the live factor's work fixed in
 //!   advance, so that no step waits for a large rebuild.
 //!
-//! Why not always beside: on the development machine (two virtual cores) a builder running
-//! beside the steps made the steps around it slower and their latencies noisy — chunks freed on
-//! one thread and allocated on the other share the allocator's locks, and the factor renewed
+//! Why not always beside: on the development machine (two virtual cores) the steps around a
+//! builder running beside them were slower and their latencies noisy, and the factor renewed
 //! beside fills on meanwhile (a renewal is collected 100–150 steps after it starts on M3500).
-//! Measured on clean M3500 in robot order with the screening alone, p99 of a step against the
-//! single-threaded build before issue 11 (which rebuilt in the step, 2–3 ms): 1.8–1.9× with
-//! every renewal beside, 1.14–1.25× with the small ones in the step (nine alternating runs;
-//! the worst step 1.1 ms against 1.5–2.2 ms). The rebuild in the step decides as the renewal
-//! beside does (the same cycles, values and order; the conditional moments agree to
+//! The noise was traced only in part: frees on the worker of memory the steps allocate (they
+//! share the allocator's locks) account for some of it, and a busy thread that allocates
+//! nothing of ours did not slow the steps (`benches/MEASUREMENTS.md`). Measured on clean M3500
+//! in robot order with the screening alone, p99 of a step against the single-threaded build
+//! before issue 11 (which rebuilt in the step, 2–3 ms): 1.83× and 1.87× with every renewal
+//! beside, 1.15× and 1.20× with the small ones in the step (two batches of nine alternating
+//! runs; the worst step 0.8–1.3 ms against 1.5 ms). The rebuild in the step decides as the
+//! renewal beside does (the same cycles and values; the conditional moments agree to
 //! rounding).
 
 use super::{OnlineEstimator, laplacian, renewal};
