@@ -85,7 +85,7 @@ impl OnlineEstimator {
         if rows < REORDER_MIN_ROWS {
             return;
         }
-        let per_row = self.screener.cond.factor_nnz() as f64 / rows as f64;
+        let per_row = self.live_fill_per_row();
         let base = if self.fill_after_reorder.is_finite() {
             self.fill_after_reorder
         } else {
@@ -94,7 +94,18 @@ impl OnlineEstimator {
         if per_row <= REORDER_FILL_RATIO * base.max(1.0) {
             return;
         }
+        // The builder's work in the live factor's units: its solves, expected from the last
+        // one's per determined cycle (at least one solve of the current fill per row), and the
+        // fill-reducing order it computes first, about as long per nonzero of P_γ as
+        // ORDER_WORK_PER_NONZERO entries of a solve (measured on city10000: 10.8 ms for 115 000
+        // nonzeros, against 5 ns per entry).
+        let expected = rows as f64 * self.rebuild_work_per_row.max(per_row)
+            + ORDER_WORK_PER_NONZERO * self.model.nnz() as f64;
         let determined = self.screener.cond.determined();
+        if expected <= self.reorder_in_step_work {
+            self.reorder_in_step(&determined);
+            return;
+        }
         let model = self.model.rows_only();
         // The rebuilt factor is small (fill-reducing order) while the live one keeps filling:
         // collect it as soon as the builder can be done. That is counted in the live factor's
@@ -123,45 +134,46 @@ impl OnlineEstimator {
         // cycle cost the collecting step 0.33 ms to free on city10000, about 8 ms on a
         // 100 000-pose world.
         let finish = |built: (Conditioner, GammaModel)| built;
-        // The builder's work in the live factor's units: its solves, expected from the last
-        // one's per determined cycle (at least one solve of the current fill per row), and the
-        // fill-reducing order it computes first, about as long per nonzero of P_γ as
-        // ORDER_WORK_PER_NONZERO entries of a solve (measured on city10000: 10.8 ms for 115 000
-        // nonzeros, against 5 ns per entry).
-        let expected = rows as f64 * self.rebuild_work_per_row.max(per_row)
-            + ORDER_WORK_PER_NONZERO * self.model.nnz() as f64;
-        if expected <= self.reorder_in_step_work {
-            self.reorder_in_step();
-            return;
-        }
         self.cond_work += self.screener.cond.take_work();
         let worker = &mut self.worker;
-        if let Some(build) = renewal::Beside::start(worker, "so2lin-reorder", build, apply, finish)
-        {
-            self.renewal = Some(CondRenewal {
-                due: renewal::Due {
-                    step: self.counters.steps as u64 + delay,
-                    work: self.cond_work + (REORDER_WORK_MARGIN * expected) as u64,
-                },
-                build,
-                cycles_sent: self.model.len(),
-                determined_sent: rows,
-            });
+        match renewal::Beside::start(worker, "so2lin-reorder", build, apply, finish) {
+            Some(build) => {
+                self.renewal = Some(CondRenewal {
+                    due: renewal::Due {
+                        step: self.counters.steps as u64 + delay,
+                        work: self.cond_work + (REORDER_WORK_MARGIN * expected) as u64,
+                    },
+                    build,
+                    cycles_sent: self.model.len(),
+                    determined_sent: rows,
+                });
+            }
+            None => self.renewal_failed(),
         }
+    }
+
+    /// A renewal could not be made (no worker thread, or a rebuild that failed: it cannot for
+    /// cycles the live factor holds): the live factor goes on, and the next attempt waits
+    /// until its fill per row has grown by half again, instead of repeating at every step.
+    fn renewal_failed(&mut self) {
+        self.fill_after_reorder = self.live_fill_per_row();
+    }
+
+    /// Nonzeros per row of the live factor of P_UU.
+    fn live_fill_per_row(&self) -> f64 {
+        self.screener.cond.factor_nnz() as f64 / self.screener.cond.len().max(1) as f64
     }
 
     /// Rebuild the factor of P_UU in a fill-reducing order here, in the step (a small one:
     /// [`REORDER_IN_STEP_WORK`]). The old factor is freed here too (on the worker its frees
-    /// contended with this thread's allocations: module docs). If the rebuild fails (it cannot
-    /// for cycles the live factor holds) the live factor goes on.
-    fn reorder_in_step(&mut self) {
-        let determined = self.screener.cond.determined();
-        let Ok(mut fresh) = Conditioner::rebuilt(&self.model, &determined, 0) else {
+    /// contended with this thread's allocations: module docs).
+    fn reorder_in_step(&mut self, determined: &[(usize, i64)]) {
+        let Ok(mut fresh) = Conditioner::rebuilt(&self.model, determined, 0) else {
+            self.renewal_failed();
             return;
         };
         self.rebuild_work_per_row = fresh.take_work() as f64 / fresh.len().max(1) as f64;
-        let old = std::mem::replace(&mut self.screener.cond, fresh);
-        drop(old);
+        self.screener.cond = fresh;
         self.after_reorder();
     }
 
@@ -183,6 +195,7 @@ impl OnlineEstimator {
         r.determined_sent = live.len();
         if !sent {
             self.renewal = None;
+            self.renewal_failed();
             return;
         }
         self.cond_work += self.screener.cond.take_work();
@@ -191,6 +204,7 @@ impl OnlineEstimator {
         }
         let Some(r) = self.renewal.take() else { return };
         let Some((mut fresh, snapshot)) = r.build.collect(&mut self.cond_waits) else {
+            self.renewal_failed();
             return;
         };
         self.worker.retire("so2lin-reorder", snapshot);
@@ -210,8 +224,7 @@ impl OnlineEstimator {
 
     /// The fill the next renewal is measured against is the new factor's; one more reorder.
     fn after_reorder(&mut self) {
-        let rows = self.screener.cond.len().max(1);
-        self.fill_after_reorder = self.screener.cond.factor_nnz() as f64 / rows as f64;
+        self.fill_after_reorder = self.live_fill_per_row();
         self.counters.reorders += 1;
     }
 }
