@@ -180,7 +180,9 @@ pub struct RejectedEdge {
     /// `s · χ²_{3|G|}⁻¹`, module docs), or
     /// the online tests of its cycle at arrival, `"cycle_angle"` (statistic: the distance of
     /// the conditional mean of γ to the nearest integer in σ; threshold q) and
-    /// `"cycle_translation"` (statistic: χ²₂ of the translation closure, [`crate::closure`]).
+    /// `"cycle_translation"` (statistic: χ²₂ of the translation closure, the larger of its two
+    /// ends, or the first end's alone when that already fails every test: a lower bound,
+    /// [`crate::closure::translation_closure_unless_first_fails`]).
     pub test: &'static str,
     /// The statistic χ²_e.
     pub statistic: f64,

@@ -722,7 +722,8 @@ pub(crate) fn skipped_lines(summary: &ReadSummary) -> Option<String> {
 
 /// "1 hypothesis", "3 hypotheses".
 /// Print rejected edges (at most ten, then a count): one line naming how many and `what`
-/// happened to them, then `edge i (from → to): test statistic > threshold`. Nothing when empty.
+/// happened to them, then `edge i (from → to): test statistic > threshold`, and what a
+/// translation statistic is when one is listed. Nothing when empty.
 pub(crate) fn print_rejected(rejected: &[so2lin::batch::RejectedEdge], what: &str) {
     if rejected.is_empty() {
         return;
@@ -739,6 +740,15 @@ pub(crate) fn print_rejected(rejected: &[so2lin::batch::RejectedEdge], what: &st
     }
     if rejected.len() > 10 {
         println!("  … {} more (--json lists all)", rejected.len() - 10);
+    }
+    if rejected
+        .iter()
+        .any(|r| r.test == so2lin::online::TRANSLATION_TEST)
+    {
+        println!(
+            "  ({} statistics: the larger of the closure at the chord's two ends, or the first end's alone when it already fails, a lower bound)",
+            so2lin::online::TRANSLATION_TEST
+        );
     }
 }
 
