@@ -99,16 +99,16 @@ impl SpanningTree {
         Self::from_preference(graph, odo.chain(rest))
     }
 
-    /// The minimum spanning tree `T_m` for weights σ².
+    /// The minimum spanning tree `T_m` for weights σ². Weights within about 1e-9 of each other
+    /// (relative) count as equal and go by edge index: σ² is computed from the information
+    /// matrix, and the same noise written the other way (`Edge::reversed`, then read back
+    /// through `Edge::new`) may give σ² one rounding apart — which, among equal odometry
+    /// weights, picked another tree, another basis, and on ambiguous data another estimate.
     pub fn minimum(graph: &PoseGraph) -> Self {
         let edges = graph.edges();
+        let key = |e: usize| weight_key(edges[e].sigma2());
         let mut order: Vec<usize> = (0..edges.len()).collect();
-        order.sort_by(|&a, &b| {
-            edges[a]
-                .sigma2()
-                .total_cmp(&edges[b].sigma2())
-                .then(a.cmp(&b))
-        });
+        order.sort_by(|&a, &b| key(a).cmp(&key(b)).then(a.cmp(&b)));
         Self::from_preference(graph, order)
     }
 
@@ -148,6 +148,12 @@ impl SpanningTree {
         }
         (up_a, up_b)
     }
+}
+
+/// A weight σ² > 0 on a logarithmic grid of relative step 2⁻³⁰ (about 1e-9): weights one
+/// rounding apart share a key (but at a grid boundary, about one pair in 10⁶).
+fn weight_key(sigma2: f64) -> i64 {
+    (sigma2.log2() * (1u64 << 30) as f64).round() as i64
 }
 
 #[cfg(test)]
