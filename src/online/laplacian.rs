@@ -40,8 +40,8 @@
 //! it). Every later change (node, row, removed prior, moved right-hand side) is sent to the
 //! builder, which applies it to its factor as it comes, so the live factor's steps replay
 //! nothing ([`super::renewal`]). The new factor is collected once the live factor has done
-//! [`WORK_PER_NONZERO`] units of its own work ([`SqrtInfo::take_work`]) per nonzero the
-//! renewed factor is expected to have (the last renewal's fill per row times the variables),
+//! [`work_per_nonzero`] units of its own work ([`SqrtInfo::take_work`]; 96 up to M3500's
+//! 3 500 nodes, growing to 144 at 10 000) per nonzero the renewed factor is expected to have (the last renewal's fill per row times the variables),
 //! and at least [`MIN_DELAY`] steps after the start — counts, not clocks, so the run stays
 //! deterministic whatever the threads' timing; the step waits only if the builder is still
 //! busy then — and swapped in. Every answer in between comes from the live factor: exact at
@@ -73,8 +73,22 @@ pub(crate) const MIN_DELAY: u64 = 32;
 /// the live factor does this work sooner, and at 64 the collections waited (the 100 000-pose
 /// world's worst step 158–173 ms in 35–38 waits, against 29–92 ms in 5 at 96; M3500's over 2 ms
 /// in 6 of 14 runs, against 1 of 12; `so2lin stream FILE --json`, robot order, the newest pose
-/// read after every step), at a cost of 5–20 % in p99 and stream time.
+/// read after every step), at a cost of 5–20 % in p99 and stream time. Since rows are rotated
+/// over contiguous values (module `estimate::incremental`, 2026-12-04) the live factor does a
+/// unit of work a third faster, and on the larger graphs the builders fell behind: city10000
+/// waited at 34–38 collections (worst step 3.6–4.1 ms) against 2–4 before, and at 144 units
+/// per nonzero at 5–7 (1.1–1.5 ms, p99 0.72× before). M3500's builds keep up at 96 (p99 0.88×
+/// before; at 144 its p99 was 1.07×: the live factor fills for longer). So the constant grows
+/// with the factor, [`work_per_nonzero`].
 const WORK_PER_NONZERO: f64 = 96.0;
+
+/// [`WORK_PER_NONZERO`] for a factor of `n` variables: × `(n / 3 500)^0.4`, between 1 (M3500's
+/// size and below) and 1.5 (city10000's, 10 000 nodes, and above). A build's cost per nonzero
+/// grows with the factor (its order's and the caches'), the live factor's work per unit of
+/// time falls.
+fn work_per_nonzero(n: usize) -> f64 {
+    WORK_PER_NONZERO * (n as f64 / 3_500.0).powf(0.4).clamp(1.0, 1.5)
+}
 
 /// A change to the system, sent to a renewal's builder so that it keeps its copy up to date
 /// itself (the live factor's steps replay nothing).
@@ -669,7 +683,7 @@ impl<const K: usize> Laplacian<K> {
         let finish = |(f, rows): (SqrtInfo<K>, Rows<K>)| (f, rows.y);
         let due = Due {
             step: self.steps + MIN_DELAY,
-            work: self.work + (expected_nnz * WORK_PER_NONZERO) as u64,
+            work: self.work + (expected_nnz * work_per_nonzero(n)) as u64,
         };
         let worker = &mut self.worker;
         let renewal = Beside::start(worker, "so2lin-renew", build, apply, finish)?;
