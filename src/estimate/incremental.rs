@@ -985,25 +985,28 @@ fn align<'a>(
     aligned: &'a mut Vec<f64>,
 ) -> Option<(&'a [f64], usize)> {
     let l = row.len();
-    let inside = match row.pos.last() {
-        Some(&last) => rest_pos.partition_point(|&p| p <= last),
-        None => 0,
-    };
-    if inside == l && rest_pos[..l] == row.pos[..] {
-        return Some((&rest_val[..l], inside));
+    // Row k's pattern exactly (then whatever follows lies beyond its last position).
+    if rest_pos.len() >= l && rest_pos[..l] == row.pos[..] {
+        return Some((&rest_val[..l], l));
     }
+    let last = row.pos.last().copied().unwrap_or(0);
     aligned.clear();
     aligned.resize(l, 0.0);
     let mut t = 0;
-    for (&p, &x) in rest_pos[..inside].iter().zip(&rest_val[..inside]) {
-        while t < l && row.pos[t] < p {
+    let mut inside = 0;
+    for (&p, &x) in rest_pos.iter().zip(rest_val) {
+        if l == 0 || p > last {
+            break;
+        }
+        while row.pos[t] < p {
             t += 1;
         }
-        if t == l || row.pos[t] != p {
+        if row.pos[t] != p {
             return None;
         }
         aligned[t] = x;
         t += 1;
+        inside += 1;
     }
     Some((aligned, inside))
 }
