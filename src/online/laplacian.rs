@@ -41,7 +41,7 @@
 //! builder, which applies it to its factor as it comes, so the live factor's steps replay
 //! nothing ([`super::renewal`]). The new factor is collected once the live factor has done
 //! [`work_per_nonzero`] units of its own work ([`SqrtInfo::take_work`]; 96 up to M3500's
-//! 3 500 nodes, growing to 144 at 10 000) per nonzero the renewed factor is expected to have (the last renewal's fill per row times the variables),
+//! 3 500 nodes, growing to 144 at 5 500) per nonzero the renewed factor is expected to have (the last renewal's fill per row times the variables),
 //! and at least [`MIN_DELAY`] steps after the start — counts, not clocks, so the run stays
 //! deterministic whatever the threads' timing; the step waits only if the builder is still
 //! busy then — and swapped in. Every answer in between comes from the live factor: exact at
@@ -82,12 +82,13 @@ pub(crate) const MIN_DELAY: u64 = 32;
 /// with the factor, [`work_per_nonzero`].
 const WORK_PER_NONZERO: f64 = 96.0;
 
-/// [`WORK_PER_NONZERO`] for a factor of `n` variables: × `(n / 3 500)^0.4`, between 1 (M3500's
-/// size and below) and 1.5 (city10000's, 10 000 nodes, and above). A build's cost per nonzero
-/// grows with the factor (its order's and the caches'), the live factor's work per unit of
-/// time falls.
+/// [`WORK_PER_NONZERO`] for a factor of `n` variables: × `(n / 3 500)^0.8`, between 1 (M3500's
+/// size and below) and 1.5 (from about 5 500 variables). A build's cost per nonzero grows with
+/// the factor (its order's and the caches'), the live factor's work per unit of time falls.
+/// (With `^0.4`, 1.5 from 10 000 variables: city10000 waited at 17–19 collections against 10
+/// with `^0.8`, four alternating runs.)
 fn work_per_nonzero(n: usize) -> f64 {
-    WORK_PER_NONZERO * (n as f64 / 3_500.0).powf(0.4).clamp(1.0, 1.5)
+    WORK_PER_NONZERO * (n as f64 / 3_500.0).powf(0.8).clamp(1.0, 1.5)
 }
 
 /// A change to the system, sent to a renewal's builder so that it keeps its copy up to date
