@@ -986,7 +986,7 @@ fn align<'a>(
 ) -> Option<(&'a [f64], usize)> {
     let l = row.len();
     // Row k's pattern exactly (then whatever follows lies beyond its last position).
-    if rest_pos.len() >= l && rest_pos[..l] == row.pos[..] {
+    if rest_pos.len() >= l && same(&rest_pos[..l], &row.pos) {
         return Some((&rest_val[..l], l));
     }
     let last = row.pos.last().copied().unwrap_or(0);
@@ -1009,6 +1009,13 @@ fn align<'a>(
         inside += 1;
     }
     Some((aligned, inside))
+}
+
+/// Whether two equally long position lists are equal: one pass without an early exit, which
+/// the compiler vectorises (the rows are a few dozen entries; a `memcmp` call cost more).
+#[inline]
+fn same(a: &[u32], b: &[u32]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
 /// Drop the zeros of `row` (in order).
@@ -1040,16 +1047,13 @@ fn rotate_in_place(
     aligned: &mut Vec<f64>,
 ) -> Option<(usize, bool)> {
     let (xs, inside) = align(row, (rest_pos, rest_val), aligned)?;
-    let l = row.len();
     next.clear();
-    next.resize(l, 0.0);
-    let mut zero = false;
-    for ((r, &x), n) in row.val.iter_mut().zip(xs).zip(next.iter_mut()) {
+    next.extend(row.val.iter_mut().zip(xs).map(|(r, &x)| {
         let rkj = *r;
         *r = c * rkj + s * x;
-        *n = c * x - s * rkj;
-        zero |= *n == 0.0;
-    }
+        c * x - s * rkj
+    }));
+    let mut zero = next.contains(&0.0);
     for (&p, &x) in rest_pos[inside..].iter().zip(&rest_val[inside..]) {
         let rkj = 0.0;
         row.push(p, c * rkj + s * x);
