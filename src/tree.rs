@@ -106,9 +106,8 @@ impl SpanningTree {
     /// weights, picked another tree, another basis, and on ambiguous data another estimate.
     pub fn minimum(graph: &PoseGraph) -> Self {
         let edges = graph.edges();
-        let key = |e: usize| weight_key(edges[e].sigma2());
         let mut order: Vec<usize> = (0..edges.len()).collect();
-        order.sort_by(|&a, &b| key(a).cmp(&key(b)).then(a.cmp(&b)));
+        order.sort_by_cached_key(|&e| (weight_key(edges[e].sigma2()), e));
         Self::from_preference(graph, order)
     }
 

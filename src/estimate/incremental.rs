@@ -455,17 +455,9 @@ impl<const K: usize> SqrtInfo<K> {
                 self.nnz += fill;
                 if zeros {
                     // The row goes on with row k's pattern less its zeros, written out.
-                    let row = &self.rows[k];
-                    let mut o = 0;
                     next.pos.clear();
-                    for t in 0..row.len() {
-                        if next.val[t] != 0.0 {
-                            next.pos.push(row.pos[t]);
-                            next.val[o] = next.val[t];
-                            o += 1;
-                        }
-                    }
-                    next.val.truncate(o);
+                    next.pos.extend_from_slice(&self.rows[k].pos);
+                    drop_zeros(&mut next);
                     pattern_of = None;
                 } else {
                     pattern_of = Some(k);
