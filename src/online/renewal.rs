@@ -11,7 +11,9 @@
 //! changes, applies whatever changes the builder had not reached yet itself, and swaps the
 //! result in. Taking over instead of asking the builder to finish saves the round trip of
 //! waking it (20–130 µs a renewal on the development machine, more when it is descheduled):
-//! a step waits only while the builder is still building its snapshot, or applying one change.
+//! a step waits only while the builder is still building its snapshot, or applying one change
+//! (a step that finds it applying one asks it to leave its state out after that change rather
+//! than take the next: it used to take them all, and the step waited until its queue was empty).
 //! Applying the same changes in the same order to the same state gives the same bits on
 //! either thread, so the answers do not depend on who applied them.
 
@@ -147,6 +149,9 @@ struct Shared<S, M> {
     /// The builder is waiting for a change (a change sent then must wake it; otherwise the
     /// owner's step saves the system call).
     idle: bool,
+    /// The owner is waiting to take the state over: the builder leaves it after the change it
+    /// is applying instead of taking the next one.
+    wanted: bool,
 }
 
 /// The lock and the condition both sides wait on.
@@ -222,6 +227,7 @@ impl<S: Send + 'static, T, M: Send + 'static> Beside<S, T, M> {
                 failed: false,
                 done: false,
                 idle: false,
+                wanted: false,
             }),
             Condvar::new(),
         ));
@@ -237,7 +243,8 @@ impl<S: Send + 'static, T, M: Send + 'static> Beside<S, T, M> {
             cv.notify_all();
             while !g.failed {
                 g.idle = true;
-                let Ok(waited) = cv.wait_while(g, |s| s.queue.is_empty() && !s.done) else {
+                let idle = |s: &mut Shared<S, M>| (s.queue.is_empty() || s.wanted) && !s.done;
+                let Ok(waited) = cv.wait_while(g, idle) else {
                     return;
                 };
                 g = waited;
@@ -294,6 +301,9 @@ impl<S: Send + 'static, T, M: Send + 'static> Beside<S, T, M> {
         let mut g = lock(m)?;
         if g.state.is_none() && !g.failed {
             *waits += 1;
+            // The builder leaves its state out after the change it is applying, rather than
+            // going on through its queue while this step waits.
+            g.wanted = true;
             g = cv.wait_while(g, |s| s.state.is_none() && !s.failed).ok()?;
         }
         g.done = true;
@@ -394,6 +404,48 @@ mod tests {
         let _ = tid;
     }
 
+    /// An owner that collects while the builder has changes queued takes the state over after
+    /// the change the builder is applying, and applies the rest itself (the builder does not
+    /// go on through its queue while the owner waits).
+    #[test]
+    fn a_waiting_owner_takes_over_after_the_current_change() {
+        use std::sync::atomic::{AtomicBool, Ordering};
+        static RELEASE: AtomicBool = AtomicBool::new(false);
+        static ON_BUILDER: Mutex<Vec<u32>> = Mutex::new(Vec::new());
+        fn apply(s: &mut Vec<u32>, c: u32) -> Option<()> {
+            if std::thread::current().name() == Some("slow") {
+                ON_BUILDER.lock().ok()?.push(c);
+                // Change 1 holds the builder until the owner is waiting for the state.
+                while c == 1 && !RELEASE.load(Ordering::Acquire) {
+                    std::thread::yield_now();
+                }
+            }
+            s.push(c);
+            Some(())
+        }
+        let mut worker = Worker::default();
+        let r = Beside::start(&mut worker, "slow", || Some(vec![0u32]), apply, |s| s)
+            .expect("a worker thread");
+        for c in 1..=50 {
+            assert!(r.send(c));
+        }
+        while !ON_BUILDER.lock().is_ok_and(|on| on.contains(&1)) {
+            std::thread::yield_now();
+        }
+        let link = Arc::clone(&r.link);
+        let releaser = std::thread::spawn(move || {
+            while !lock(&link.0).is_some_and(|g| g.wanted) {
+                std::thread::yield_now();
+            }
+            RELEASE.store(true, Ordering::Release);
+        });
+        let mut waits = 0;
+        assert_eq!(r.collect(&mut waits), Some((0..=50).collect::<Vec<_>>()));
+        releaser.join().expect("the releaser ends");
+        assert_eq!(*ON_BUILDER.lock().expect("not poisoned"), [1]);
+        assert_eq!(waits, 1);
+    }
+
     /// The state built from the snapshot, with every change applied in order whoever applied
     /// it; a failed change fails the renewal; a dropped renewal frees its worker.
     #[test]
@@ -433,6 +485,9 @@ mod tests {
         let r = Beside::start(&mut worker, "t", || Some(vec![]), boom, |s| s).expect("w");
         assert!(r.send(1));
         assert!(r.collect(&mut waits).is_none());
+        // A builder that panics while building (the worker thread ends with it).
+        let r = Beside::start(&mut worker, "t", || panic!("a build's bug"), push, |s| s);
+        assert!(r.is_none_or(|r| r.collect(&mut waits).is_none()));
         // A job queued on a worker whose thread is gone never runs: also a failed renewal.
         let r = Beside::start(&mut worker, "t", || Some(vec![]), push, |s| s);
         assert!(r.is_none_or(|r| r.collect(&mut waits).is_none()));
