@@ -84,8 +84,8 @@ fn thread_id() -> i32 {
 
 /// Let thread `tid` run on the cores the caller may use, but not the one it is on now (Linux):
 /// a builder woken by the robot's thread was queued behind it on the same core (at nice 10
-/// then; a batch thread now, [`builder_scheduling`]) until the step blocked — M3500's worst steps were those waits, up to 9 ms for a
-/// 0.3 ms build. The core avoided, or None (nothing changed) when `tid` is not known yet, the
+/// then; a batch thread now, [`builder_scheduling`]) until the step blocked — M3500's worst
+/// steps were those waits, up to 9 ms for a 0.3 ms build. The core avoided, or None (nothing changed) when `tid` is not known yet, the
 /// caller may use one core only, or the system refuses.
 fn avoid_callers_core(tid: i32) -> Option<usize> {
     #[cfg(target_os = "linux")]
@@ -114,8 +114,8 @@ fn avoid_callers_core(tid: i32) -> Option<usize> {
     }
 }
 
-/// The builder's scheduling (Linux; elsewhere nothing): `SCHED_BATCH` at the default nice
-/// value. A batch thread is not let preempt a running thread when it wakes, so a builder woken
+/// The builder's scheduling (Linux; elsewhere nothing): `SCHED_BATCH` at the process's own
+/// nice value. A batch thread is not let preempt a running thread when it wakes, so a builder woken
 /// on the robot's core does not take it from a step; otherwise it gets a fair share of the
 /// machine. The builder used to run at nice 10, which kept it off the step's core as well but
 /// starved it behind any other busy process on the machine (a nice-10 thread weighs a tenth of
@@ -434,7 +434,9 @@ mod tests {
         }
         let link = Arc::clone(&r.link);
         let releaser = std::thread::spawn(move || {
-            while !lock(&link.0).is_some_and(|g| g.wanted) {
+            // (Released after a minute regardless, so that a regression fails, not hangs.)
+            let start = std::time::Instant::now();
+            while !lock(&link.0).is_some_and(|g| g.wanted) && start.elapsed().as_secs() < 60 {
                 std::thread::yield_now();
             }
             RELEASE.store(true, Ordering::Release);
