@@ -42,10 +42,10 @@
 //! nothing ([`super::renewal`]). The new factor is collected once the live factor has done
 //! [`work_per_nonzero`] units of its own work ([`SqrtInfo::take_work`]; 96 up to M3500's
 //! 3 500 nodes, growing to 144 at 5 500) per nonzero the renewed factor is expected to have
-//! (the last renewal's fill per row times the variables), and at least [`MIN_DELAY`] steps after the start — counts, not clocks, so the run stays
-//! deterministic whatever the threads' timing; the step waits only if the builder is still
-//! busy then — and swapped in. Every answer in between comes from the live factor: exact at
-//! every step.
+//! (the last renewal's fill per row times the variables), and at least [`MIN_DELAY`] steps
+//! after the start — counts, not clocks, so the run stays deterministic whatever the threads'
+//! timing; the step waits only if the builder is still busy then — and swapped in. Every
+//! answer in between comes from the live factor: exact at every step.
 
 use super::renewal::{Beside, Due, Worker};
 use crate::estimate::incremental::{Leftover, SqrtInfo, fill_reducing_order};

@@ -85,8 +85,9 @@ fn thread_id() -> i32 {
 /// Let thread `tid` run on the cores the caller may use, but not the one it is on now (Linux):
 /// a builder woken by the robot's thread was queued behind it on the same core (at nice 10
 /// then; a batch thread now, [`builder_scheduling`]) until the step blocked — M3500's worst
-/// steps were those waits, up to 9 ms for a 0.3 ms build. The core avoided, or None (nothing changed) when `tid` is not known yet, the
-/// caller may use one core only, or the system refuses.
+/// steps were those waits, up to 9 ms for a 0.3 ms build. The core avoided, or None (nothing
+/// changed) when `tid` is not known yet, the caller may use one core only, or the system
+/// refuses.
 fn avoid_callers_core(tid: i32) -> Option<usize> {
     #[cfg(target_os = "linux")]
     // SAFETY: a zeroed cpu_set_t filled by sched_getaffinity and the libc macros, passed by
@@ -115,9 +116,9 @@ fn avoid_callers_core(tid: i32) -> Option<usize> {
 }
 
 /// The builder's scheduling (Linux; elsewhere nothing): `SCHED_BATCH` at the process's own
-/// nice value. A batch thread is not let preempt a running thread when it wakes, so a builder woken
-/// on the robot's core does not take it from a step; otherwise it gets a fair share of the
-/// machine. The builder used to run at nice 10, which kept it off the step's core as well but
+/// nice value. A batch thread does not preempt a running thread when it wakes, so a builder
+/// woken on the robot's core does not take it from a step; otherwise it gets a fair share of
+/// the machine. The builder used to run at nice 10, which kept it off the step's core as well but
 /// starved it behind any other busy process on the machine (a nice-10 thread weighs a tenth of
 /// a nice-0 one): the collection that needed its factor then waited. With processes spinning
 /// beside the stream (`so2lin stream FILE --json`, robot order, the newest pose read after
