@@ -180,28 +180,41 @@ fn position_weight(edge: &Edge) -> (f64, bool) {
     )
 }
 
-/// A job that writes `R(θ_a) t_e` (every edge's position measurement at the headings θ)
-/// into components `first` and `first + 1` of the first `edges` measurements.
+/// Write `R(θ_a) t_e` (every edge's position measurement at the headings θ) into components
+/// `first` and `first + 1` of the first `edges` measurements `y`, from `tails` (each edge's
+/// older end and measurement). The sine and cosine are taken once per node, not per edge
+/// (the same numbers: M3500 has 1.6 edges per node, city10000 2.1).
+fn write_relinearised<const K: usize>(
+    y: &mut [[f64; K]],
+    theta: &[f64],
+    tails: impl Iterator<Item = (usize, Pose2)>,
+    first: usize,
+) {
+    let sin_cos: Vec<(f64, f64)> = theta.iter().map(|t| t.sin_cos()).collect();
+    for (ye, (a, z)) in y.iter_mut().zip(tails) {
+        let (s, c) = sin_cos[a];
+        ye[first] = c * z.x - s * z.y;
+        ye[first + 1] = s * z.x + c * z.y;
+    }
+}
+
+/// The edges' older ends and measurements, the first `edges` of them.
+fn tails(graph: &PoseGraph, edges: usize) -> impl Iterator<Item = (usize, Pose2)> + '_ {
+    (graph.endpoints().iter().zip(graph.edges()))
+        .take(edges)
+        .map(|(&(a, _), e)| (a, e.measurement()))
+}
+
+/// [`write_relinearised`] as a job for another thread (a renewal's builder): the tails are
+/// copied now.
 fn relinearise<const K: usize>(
     theta: Vec<f64>,
     graph: &PoseGraph,
     edges: usize,
     first: usize,
 ) -> impl FnOnce(&mut [[f64; K]]) + Send + 'static {
-    let tails: Vec<(usize, Pose2)> = graph
-        .endpoints()
-        .iter()
-        .zip(graph.edges())
-        .take(edges)
-        .map(|(&(a, _), e)| (a, e.measurement()))
-        .collect();
-    move |y: &mut [[f64; K]]| {
-        for (ye, &(a, z)) in y.iter_mut().zip(&tails) {
-            let [px, py] = rotate(theta[a], z);
-            ye[first] = px;
-            ye[first + 1] = py;
-        }
-    }
+    let tails: Vec<(usize, Pose2)> = tails(graph, edges).collect();
+    move |y: &mut [[f64; K]]| write_relinearised(y, &theta, tails.into_iter(), first)
 }
 
 /// Keep the headings' bound [`Laplacian::moved`] (of `heads`) as the lag of the position rows
@@ -341,14 +354,15 @@ impl Factors {
     /// and values kept; the headings' bound back to 0.
     fn relinearise_positions(&mut self, graph: &PoseGraph, edges: usize) {
         match self {
+            // Written here from the graph (no copy of the tails: this runs on the step).
             Factors::Shared { both, .. } => {
-                let job = relinearise::<3>(both.all(0), graph, edges, 1);
-                both.relinearise(Box::new(job), 1);
+                let theta = both.all(0);
+                both.relinearise(|y| write_relinearised(y, &theta, tails(graph, edges), 1), 1);
                 both.set_moved(0, 0.0);
             }
             Factors::Split { heads, positions } => {
-                let job = relinearise::<2>(heads.all(0), graph, edges, 0);
-                positions.relinearise(Box::new(job), 0);
+                let theta = heads.all(0);
+                positions.relinearise(|y| write_relinearised(y, &theta, tails(graph, edges), 0), 0);
                 heads.set_moved(0, 0.0);
             }
         }

@@ -550,7 +550,7 @@ impl<const K: usize> Laplacian<K> {
     /// solve, so that no step pays for both it and the back-substitution that gave the
     /// headings); until then the factor answers with the rows as they were. The factor's
     /// order and values stay.
-    pub fn relinearise(&mut self, relinearise: Relinearise<K>, from: usize) {
+    pub fn relinearise(&mut self, relinearise: impl FnOnce(&mut [[f64; K]]), from: usize) {
         relinearise(&mut self.rows.y);
         let from = from.min(K);
         self.stale_rhs = Some(self.stale_rhs.map_or(from, |f| f.min(from)));
