@@ -205,8 +205,8 @@ fn tails(graph: &PoseGraph, edges: usize) -> impl Iterator<Item = (usize, Pose2)
         .map(|(&(a, _), e)| (a, e.measurement()))
 }
 
-/// [`write_relinearised`] as a job for another thread (a renewal's builder): the tails are
-/// copied now.
+/// [`write_relinearised`] as a job to run later (a renewal's builder, a rebuild): the tails
+/// are copied now.
 fn relinearise<const K: usize>(
     theta: Vec<f64>,
     graph: &PoseGraph,
@@ -619,12 +619,14 @@ impl Estimate {
         }
         let edges = self.factors.position_rows();
         let [x, y] = match &mut self.factors {
-            Factors::Shared { both, .. } => {
-                both.all_for(relinearise::<3>(theta.clone(), graph, edges, 1), [1, 2])
-            }
-            Factors::Split { positions, .. } => {
-                positions.all_for(relinearise::<2>(theta.clone(), graph, edges, 0), [0, 1])
-            }
+            Factors::Shared { both, .. } => both.all_for(
+                |y| write_relinearised(y, &theta, tails(graph, edges), 1),
+                [1, 2],
+            ),
+            Factors::Split { positions, .. } => positions.all_for(
+                |y| write_relinearised(y, &theta, tails(graph, edges), 0),
+                [0, 1],
+            ),
         };
         Ok((0..theta.len())
             .map(|v| Pose2::new(x[v], y[v], theta[v]))
