@@ -182,8 +182,8 @@ fn position_weight(edge: &Edge) -> (f64, bool) {
 
 /// Write `R(θ_a) t_e` (every edge's position measurement at the headings θ) into components
 /// `first` and `first + 1` of the first `edges` measurements `y`, from `tails` (each edge's
-/// older end and measurement). The sine and cosine are taken once per node, not per edge
-/// (the same numbers: M3500 has 1.6 edges per node, city10000 2.1).
+/// older end and measurement). The sine and cosine are taken once per node, not per edge:
+/// the same values, computed fewer times (M3500 has 1.6 edges per node, city10000 2.1).
 fn write_relinearised<const K: usize>(
     y: &mut [[f64; K]],
     theta: &[f64],
@@ -213,8 +213,8 @@ fn relinearise<const K: usize>(
     edges: usize,
     first: usize,
 ) -> impl FnOnce(&mut [[f64; K]]) + Send + 'static {
-    let tails: Vec<(usize, Pose2)> = tails(graph, edges).collect();
-    move |y: &mut [[f64; K]]| write_relinearised(y, &theta, tails.into_iter(), first)
+    let copied: Vec<(usize, Pose2)> = tails(graph, edges).collect();
+    move |y: &mut [[f64; K]]| write_relinearised(y, &theta, copied.into_iter(), first)
 }
 
 /// Keep the headings' bound [`Laplacian::moved`] (of `heads`) as the lag of the position rows
