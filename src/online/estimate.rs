@@ -166,7 +166,12 @@ pub(crate) struct Prediction {
 
 /// `R(θ) t`: a relative translation in the world frame of a tail with heading θ.
 pub(crate) fn rotate(theta: f64, z: Pose2) -> [f64; 2] {
-    let (s, c) = theta.sin_cos();
+    rotated(theta.sin_cos(), z)
+}
+
+/// [`rotate`] given θ's `(sin, cos)`.
+#[inline]
+fn rotated((s, c): (f64, f64), z: Pose2) -> [f64; 2] {
     [c * z.x - s * z.y, s * z.x + c * z.y]
 }
 
@@ -192,9 +197,9 @@ fn write_relinearised<const K: usize>(
 ) {
     let sin_cos: Vec<(f64, f64)> = theta.iter().map(|t| t.sin_cos()).collect();
     for (ye, (a, z)) in y.iter_mut().zip(tails) {
-        let (s, c) = sin_cos[a];
-        ye[first] = c * z.x - s * z.y;
-        ye[first + 1] = s * z.x + c * z.y;
+        let [px, py] = rotated(sin_cos[a], z);
+        ye[first] = px;
+        ye[first + 1] = py;
     }
 }
 
