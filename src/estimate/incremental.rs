@@ -22,6 +22,13 @@
 //!   ([`SqrtInfo::shift_last_row`]);
 //! - **a new variable** is appended at the end of the order with an empty row.
 //!
+//! **Lanes.** A factor may hold `L` systems whose rows are the same up to their coefficients
+//! (one graph, other weights): one order and one pattern, every entry of R holding a value per
+//! lane (`[f64; L]`). A rotation takes a `(c, s)` per lane and turns every lane of a row of R in
+//! the same pass over its positions, so the path is walked once for all of them; right-hand
+//! side q belongs to lane `min(q, L − 1)`. An entry is absent only when it is zero in every lane
+//! (the patterns stay one). [`SqrtInfo::take_work`] counts values, entries times lanes.
+//!
 //! Reading: `x = R⁻¹ d` by back-substitution. The last variable is `d_n / R_nn` (O(1)); one
 //! variable costs its elimination-tree path to the root; all of them one back-substitution.
 //! A marginal variance is `‖R⁻ᵀ e_v‖²` (one forward solve along the path). No update factors
@@ -35,13 +42,22 @@
 /// The off-diagonal entries of a row of R (or of a row being rotated in): positions
 /// ascending, and their values apart from them, so that a rotation's arithmetic runs over
 /// contiguous values (which the compiler vectorises) and a pattern is compared as one slice.
-#[derive(Clone, Debug, Default, PartialEq)]
-struct Row {
+#[derive(Clone, Debug, PartialEq)]
+struct Row<const L: usize = 1> {
     pos: Vec<u32>,
-    val: Vec<f64>,
+    val: Vec<[f64; L]>,
 }
 
-impl Row {
+impl<const L: usize> Default for Row<L> {
+    fn default() -> Self {
+        Self {
+            pos: Vec::new(),
+            val: Vec::new(),
+        }
+    }
+}
+
+impl<const L: usize> Row<L> {
     #[inline]
     fn len(&self) -> usize {
         self.pos.len()
@@ -54,14 +70,14 @@ impl Row {
     }
 
     #[inline]
-    fn push(&mut self, p: u32, v: f64) {
+    fn push(&mut self, p: u32, v: [f64; L]) {
         self.pos.push(p);
         self.val.push(v);
     }
 
     /// Entry `i` as `(position, value)`.
     #[inline]
-    fn get(&self, i: usize) -> Option<(u32, f64)> {
+    fn get(&self, i: usize) -> Option<(u32, [f64; L])> {
         Some((*self.pos.get(i)?, self.val[i]))
     }
 
@@ -72,13 +88,60 @@ impl Row {
     }
 
     /// `(position, value)` pairs in order.
-    fn iter(&self) -> impl Iterator<Item = (u32, f64)> + '_ {
+    fn iter(&self) -> impl Iterator<Item = (u32, [f64; L])> + '_ {
         self.pos.iter().copied().zip(self.val.iter().copied())
     }
 }
 
+/// A column of the normal equations being assembled ([`SqrtInfo::factored`]): (position,
+/// value per lane), a few per column.
+type NormalColumn<const L: usize> = smallvec::SmallVec<[(usize, [f64; L]); 4]>;
+
 /// No position (variable unknown).
 const NONE: u32 = u32::MAX;
+
+/// The lane of right-hand side `q` in a factor of `L` lanes: the first `L − 1` right-hand
+/// sides have a lane each, the others share the last (with `L = 2` and three right-hand
+/// sides: the headings in lane 0, both position components in lane 1).
+#[inline(always)]
+pub(crate) const fn lane<const L: usize>(q: usize) -> usize {
+    if q < L { q } else { L - 1 }
+}
+
+/// A row's coefficient on one variable, per lane: a plain `f64` for a factor of one lane.
+pub(crate) trait Lanes<const L: usize>: Copy {
+    /// The coefficient in each lane.
+    fn lanes(self) -> [f64; L];
+}
+
+impl Lanes<1> for f64 {
+    #[inline(always)]
+    fn lanes(self) -> [f64; 1] {
+        [self]
+    }
+}
+
+impl<const L: usize> Lanes<L> for [f64; L] {
+    #[inline(always)]
+    fn lanes(self) -> [f64; L] {
+        self
+    }
+}
+
+/// Whether some entry is zero in every lane: one pass without an early exit, which the
+/// compiler vectorises (an early exit per entry cost a seventh of an M3500 stream's time).
+#[inline]
+fn has_zero<const L: usize>(values: &[[f64; L]]) -> bool {
+    values.iter().fold(false, |z, v| {
+        z | v.iter().fold(true, |all, &x| all & (x == 0.0))
+    })
+}
+
+/// Whether every lane of an entry is zero (the entry is absent).
+#[inline(always)]
+fn is_zero<const L: usize>(v: &[f64; L]) -> bool {
+    v.iter().all(|&x| x == 0.0)
+}
 
 /// The removed row made the factor indefinite: it was not (numerically) part of the problem.
 #[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
@@ -96,100 +159,119 @@ pub(crate) struct WhitenScratch {
     reach: Vec<u32>,
 }
 
-/// `R x = d` with `K` right-hand sides (see the module docs).
+/// `R x = d` with `K` right-hand sides in `L` lanes (see the module docs).
 #[derive(Clone, Debug)]
-pub(crate) struct SqrtInfo<const K: usize> {
+pub(crate) struct SqrtInfo<const K: usize, const L: usize = 1> {
     pos_of: Vec<u32>,
     var_at: Vec<u32>,
-    diag: Vec<f64>,
+    diag: Vec<[f64; L]>,
     /// Off-diagonal entries of each row of R, positions ascending and greater than the row's
     /// own.
-    rows: Vec<Row>,
+    rows: Vec<Row<L>>,
     d: Vec<[f64; K]>,
     nnz: usize,
     /// Entries of R read or written by rotations and forward solves ([`Self::take_work`]).
     work: u64,
     // Scratch (kept to avoid allocations per step).
-    w: Row,
-    w_next: Row,
-    spare_row: Row,
+    w: Row<L>,
+    w_next: Row<L>,
+    spare_row: Row<L>,
     /// A row being rotated in, its values placed at the positions of the row of R it meets.
-    aligned: Vec<f64>,
+    aligned: Vec<[f64; L]>,
     x: Vec<f64>,
     path: Vec<u32>,
     /// `(position, g)` for the last row added: `d_k` moves by `g Δβ` when that row's
     /// right-hand side moves by `Δβ` (see [`Self::shift_last_row`]).
-    gains: Vec<(u32, f64)>,
+    gains: Vec<(u32, [f64; L])>,
     /// Whether `gains` still describe R (no row added or removed since).
     gains_valid: bool,
     /// What a tentative row changed ([`Self::try_row`]), to put back on [`Self::undo_row`].
-    undo: Option<Box<Undo<K>>>,
+    undo: Option<Box<Undo<K, L>>>,
     /// Whether the rotation in progress records into `undo`.
     recording: bool,
 }
 
 /// The state a tentative row ([`SqrtInfo::try_row`]) overwrote: per row of R it rotated, a
 /// [`Rotated`] record; and the factor-wide counts and gains.
-#[derive(Clone, Debug, Default)]
-struct Undo<const K: usize> {
-    rows: Vec<Rotated<K>>,
+#[derive(Clone, Debug)]
+struct Undo<const K: usize, const L: usize> {
+    rows: Vec<Rotated<K, L>>,
     /// The rotated rows' values, one range per record.
-    values: Vec<f64>,
+    values: Vec<[f64; L]>,
     /// The positions of the rows rebuilt by a merge, one range per such record (a row rotated
     /// in place only gained positions at its end: its old length restores its pattern).
     positions: Vec<u32>,
     nnz: usize,
     work: u64,
-    gains: Vec<(u32, f64)>,
+    gains: Vec<(u32, [f64; L])>,
     gains_valid: bool,
     /// A tried row is pending (neither kept nor undone).
     active: bool,
 }
 
+impl<const K: usize, const L: usize> Default for Undo<K, L> {
+    fn default() -> Self {
+        Self {
+            rows: Vec::new(),
+            values: Vec::new(),
+            positions: Vec::new(),
+            nnz: 0,
+            work: 0,
+            gains: Vec::new(),
+            gains_valid: false,
+            active: false,
+        }
+    }
+}
+
 /// A row of R as a tentative row found it: its position, where its values (and positions, if
 /// a merge rebuilt it) start in the [`Undo`] record, its length, diagonal and right-hand side.
 #[derive(Clone, Copy, Debug)]
-struct Rotated<const K: usize> {
+struct Rotated<const K: usize, const L: usize> {
     k: u32,
     values: u32,
     /// [`NONE`] when the row was rotated in place.
     positions: u32,
     len: u32,
-    diag: f64,
+    diag: [f64; L],
     d: [f64; K],
 }
 
 /// What rotating a row `aᵀx = β` into R leaves ([`SqrtInfo::try_row`]): the part of each
 /// right-hand side no rotation absorbed, `(β − aᵀx̂)·Πc`, and `Πc`, the product of the
-/// rotations' cosines, `1/√(1 + ‖R⁻ᵀa‖²)` (x̂ the solution before the row).
+/// rotations' cosines, `1/√(1 + ‖R⁻ᵀa‖²)` (x̂ the solution before the row), per lane.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub(crate) struct Leftover<const K: usize> {
+pub(crate) struct Leftover<const K: usize, const L: usize = 1> {
     pub residual: [f64; K],
-    pub cosines: f64,
+    pub cosines: [f64; L],
 }
 
-impl<const K: usize> Leftover<K> {
+impl<const K: usize, const L: usize> Leftover<K, L> {
     /// How far the row moved its own prediction `aᵀx̂`, per right-hand side, over `scale`:
     /// `(β − aᵀx̂)(1 − Πc²)/scale` (`1 − Πc² = ‖R⁻ᵀa‖²/(1 + ‖R⁻ᵀa‖²)`, the gain of the
     /// prediction toward the row). For a Laplacian edge row `√w (x_b − x_a) = √w y` with
     /// `scale = √w`, the change of `x̂_b − x̂_a`. Zero when the row's last rotation met an
     /// empty row (`Πc = 0`: a new variable takes the row, nothing else moves).
-    pub fn moved_prediction(&self, scale: f64) -> [f64; K] {
-        if self.cosines == 0.0 {
-            return [0.0; K];
-        }
+    pub fn moved_prediction(&self, scale: [f64; L]) -> [f64; K] {
         let gain = self.gain();
-        self.residual.map(|r| (r / self.cosines) * gain / scale)
+        std::array::from_fn(|q| {
+            let l = lane::<L>(q);
+            if self.cosines[l] == 0.0 {
+                0.0
+            } else {
+                (self.residual[q] / self.cosines[l]) * gain[l] / scale[l]
+            }
+        })
     }
 
-    /// `1 − Πc²`: how much of a later shift `Δβ` of the row's right-hand side moves its own
-    /// prediction (`aᵀ(RᵀR)⁻¹a` with the row in).
-    pub fn gain(&self) -> f64 {
-        1.0 - self.cosines * self.cosines
+    /// `1 − Πc²` per lane: how much of a later shift `Δβ` of the row's right-hand side moves
+    /// its own prediction (`aᵀ(RᵀR)⁻¹a` with the row in).
+    pub fn gain(&self) -> [f64; L] {
+        self.cosines.map(|c| 1.0 - c * c)
     }
 }
 
-impl<const K: usize> Default for SqrtInfo<K> {
+impl<const K: usize, const L: usize> Default for SqrtInfo<K, L> {
     fn default() -> Self {
         Self {
             pos_of: Vec::new(),
@@ -213,7 +295,7 @@ impl<const K: usize> Default for SqrtInfo<K> {
     }
 }
 
-impl<const K: usize> SqrtInfo<K> {
+impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     /// No variables.
     pub fn new() -> Self {
         Self::default()
@@ -224,9 +306,9 @@ impl<const K: usize> SqrtInfo<K> {
         self.diag.len()
     }
 
-    /// Entries of R visited by the row updates since the last call (then zero): a
-    /// deterministic measure of the time this factor's updates took (a rotation or forward
-    /// solve costs in proportion to the entries of the rows on its path).
+    /// Values of R (entries times lanes) visited by the row updates since the last call (then
+    /// zero): a deterministic measure of the time this factor's updates took (a rotation or
+    /// forward solve costs in proportion to the entries of the rows on its path).
     pub fn take_work(&mut self) -> u64 {
         std::mem::take(&mut self.work)
     }
@@ -244,19 +326,24 @@ impl<const K: usize> SqrtInfo<K> {
         }
         self.pos_of[v] = self.var_at.len() as u32;
         self.var_at.push(v as u32);
-        self.diag.push(0.0);
+        self.diag.push([0.0; L]);
         self.rows.push(Row::default());
         self.d.push([0.0; K]);
         self.x.push(0.0);
     }
 
-    fn load(&mut self, entries: &[(usize, f64)]) {
+    fn load<C: Lanes<L>>(&mut self, entries: &[(usize, C)]) {
         self.w.clear();
         for &(v, a) in entries {
             let p = self.pos_of[v];
             debug_assert!(p != NONE, "unknown variable {v}");
+            let a = a.lanes();
             match self.w.pos.iter().position(|&q| q == p) {
-                Some(i) => self.w.val[i] += a,
+                Some(i) => {
+                    for (x, a) in self.w.val[i].iter_mut().zip(a) {
+                        *x += a;
+                    }
+                }
                 None => self.w.push(p, a),
             }
         }
@@ -272,10 +359,14 @@ impl<const K: usize> SqrtInfo<K> {
     }
 
     /// Add the row `Σ a_v x_v = β` (Givens rotations): what the rotations leave.
-    pub fn add_row(&mut self, entries: &[(usize, f64)], beta: [f64; K]) -> Leftover<K> {
+    pub fn add_row<C: Lanes<L>>(
+        &mut self,
+        entries: &[(usize, C)],
+        beta: [f64; K],
+    ) -> Leftover<K, L> {
         self.load(entries);
         // Cannot fail for an update.
-        let (residual, cosines) = self.rotate(beta, false).unwrap_or(([0.0; K], 1.0));
+        let (residual, cosines) = self.rotate(beta, false).unwrap_or(([0.0; K], [1.0; L]));
         Leftover { residual, cosines }
     }
 
@@ -284,7 +375,11 @@ impl<const K: usize> SqrtInfo<K> {
     /// [`Leftover`]: the row's prediction error and variance come with the rotations that add
     /// it (`β − aᵀx̂ = residual/Πc`, `1 + aᵀ(RᵀR)⁻¹a = 1/Πc²`), so a caller can judge the row
     /// before keeping it, at the cost of one copy of the rows it touched.
-    pub fn try_row(&mut self, entries: &[(usize, f64)], beta: [f64; K]) -> Leftover<K> {
+    pub fn try_row<C: Lanes<L>>(
+        &mut self,
+        entries: &[(usize, C)],
+        beta: [f64; K],
+    ) -> Leftover<K, L> {
         let mut undo = self.undo.take().unwrap_or_default();
         undo.rows.clear();
         undo.values.clear();
@@ -347,9 +442,9 @@ impl<const K: usize> SqrtInfo<K> {
 
     /// Remove a row previously added (hyperbolic rotations). On failure the factor is left
     /// partly updated; the owner rebuilds it.
-    pub fn remove_row(
+    pub fn remove_row<C: Lanes<L>>(
         &mut self,
-        entries: &[(usize, f64)],
+        entries: &[(usize, C)],
         beta: [f64; K],
     ) -> Result<(), Indefinite> {
         self.load(entries);
@@ -359,9 +454,9 @@ impl<const K: usize> SqrtInfo<K> {
     /// Rotate the row in `self.w` (positions) with right-hand side `beta` into R.
     /// [`Self::rotate`] of an update, recording every row it changes in `self.undo`: the
     /// leftover right-hand side and the product of the cosines.
-    fn rotate_recording(&mut self, beta: [f64; K]) -> ([f64; K], f64) {
+    fn rotate_recording(&mut self, beta: [f64; K]) -> ([f64; K], [f64; L]) {
         self.recording = self.undo.is_some();
-        let out = self.rotate(beta, false).unwrap_or(([0.0; K], 1.0));
+        let out = self.rotate(beta, false).unwrap_or(([0.0; K], [1.0; L]));
         self.recording = false;
         out
     }
@@ -372,7 +467,7 @@ impl<const K: usize> SqrtInfo<K> {
         &mut self,
         mut beta: [f64; K],
         downdate: bool,
-    ) -> Result<([f64; K], f64), Indefinite> {
+    ) -> Result<([f64; K], [f64; L]), Indefinite> {
         let work_before = self.work;
         let mut w = std::mem::take(&mut self.w);
         let mut next = std::mem::take(&mut self.w_next);
@@ -383,9 +478,9 @@ impl<const K: usize> SqrtInfo<K> {
         self.gains.clear();
         self.gains_valid = !downdate;
         // The part of the row's right-hand side still to rotate, per unit of β (updates).
-        let mut gain = 1.0;
+        let mut gain = [1.0; L];
         let result = loop {
-            while head < w.val.len() && w.val[head] == 0.0 {
+            while head < w.val.len() && is_zero(&w.val[head]) {
                 head += 1;
             }
             if head >= w.val.len() {
@@ -396,7 +491,7 @@ impl<const K: usize> SqrtInfo<K> {
                 Some(j) => self.rows[j].pos[head],
                 None => w.pos[head],
             } as usize;
-            self.work += (1 + self.rows[k].len() + w.val.len() - head) as u64;
+            self.work += (L * (1 + self.rows[k].len() + w.val.len() - head)) as u64;
             if self.recording
                 && let Some(u) = &mut self.undo
             {
@@ -411,27 +506,53 @@ impl<const K: usize> SqrtInfo<K> {
                 });
                 u.values.extend_from_slice(&row.val);
             }
+            let (mut c, mut s) = ([1.0; L], [0.0; L]);
+            let mut indefinite = false;
             let r = self.diag[k];
-            let (c, s, rho) = if downdate {
-                let rho2 = r * r - wk * wk;
-                if rho2 <= 0.0 || !rho2.is_finite() {
-                    break Err(Indefinite { position: k });
-                }
-                let rho = rho2.sqrt();
-                (rho / r, wk / r, rho)
+            if !downdate && (0..L).all(|l| wk[l] != 0.0 && r[l].abs().max(wk[l].abs()) < 1e150) {
+                // Every lane turns, no square near overflow: the lanes at once (what the loop
+                // below computes, lane by lane).
+                let rho: [f64; L] = std::array::from_fn(|l| (r[l] * r[l] + wk[l] * wk[l]).sqrt());
+                c = std::array::from_fn(|l| r[l] / rho[l]);
+                s = std::array::from_fn(|l| wk[l] / rho[l]);
+                self.diag[k] = rho;
             } else {
-                // hypot only where the squares could overflow (it is several times slower).
-                let rho = if r.abs().max(wk.abs()) < 1e150 {
-                    (r * r + wk * wk).sqrt()
-                } else {
-                    r.hypot(wk)
-                };
-                (r / rho, wk / rho, rho)
-            };
-            self.diag[k] = rho;
+                for l in 0..L {
+                    let (r, wk) = (self.diag[k][l], wk[l]);
+                    if wk == 0.0 {
+                        // This lane has no entry here (another has): nothing turns.
+                        continue;
+                    }
+                    let (cl, sl, rho) = if downdate {
+                        let rho2 = r * r - wk * wk;
+                        if rho2 <= 0.0 || !rho2.is_finite() {
+                            indefinite = true;
+                            break;
+                        }
+                        let rho = rho2.sqrt();
+                        (rho / r, wk / r, rho)
+                    } else {
+                        // hypot only where the squares could overflow (it is several times slower).
+                        let rho = if r.abs().max(wk.abs()) < 1e150 {
+                            (r * r + wk * wk).sqrt()
+                        } else {
+                            r.hypot(wk)
+                        };
+                        (r / rho, wk / rho, rho)
+                    };
+                    (c[l], s[l]) = (cl, sl);
+                    self.diag[k][l] = rho;
+                }
+            }
+            if indefinite {
+                break Err(Indefinite { position: k });
+            }
             if !downdate {
-                self.gains.push((k as u32, s * gain));
-                gain *= c;
+                self.gains
+                    .push((k as u32, std::array::from_fn(|l| s[l] * gain[l])));
+                for l in 0..L {
+                    gain[l] *= c[l];
+                }
             }
             next.clear();
             let in_place = if downdate {
@@ -488,30 +609,28 @@ impl<const K: usize> SqrtInfo<K> {
                         }
                         (Some((pa, a)), Some((pb, _))) if pa < pb => {
                             i += 1;
-                            (pa, a, 0.0)
+                            (pa, a, [0.0; L])
                         }
                         (Some(_), Some((pb, b))) => {
                             j += 1;
-                            (pb, 0.0, b)
+                            (pb, [0.0; L], b)
                         }
                         (Some((pa, a)), None) => {
                             i += 1;
-                            (pa, a, 0.0)
+                            (pa, a, [0.0; L])
                         }
                         (None, Some((pb, b))) => {
                             j += 1;
-                            (pb, 0.0, b)
+                            (pb, [0.0; L], b)
                         }
                         (None, None) => unreachable!(),
                     };
-                    let (rn, wn) = if downdate {
-                        let rn = (rkj - s * wj) / c;
-                        (rn, c * wj - s * rn)
-                    } else {
-                        (c * rkj + s * wj, c * wj - s * rkj)
-                    };
+                    let (mut rn, mut wn) = ([0.0; L], [0.0; L]);
+                    for l in 0..L {
+                        (rn[l], wn[l]) = turn(downdate, (c[l], s[l]), rkj[l], wj[l]);
+                    }
                     row.push(p, rn);
-                    if wn != 0.0 {
+                    if !is_zero(&wn) {
                         next.push(p, wn);
                     }
                 }
@@ -521,15 +640,8 @@ impl<const K: usize> SqrtInfo<K> {
             }
             let dk = &mut self.d[k];
             for q in 0..K {
-                if downdate {
-                    let dn = (dk[q] - s * beta[q]) / c;
-                    beta[q] = c * beta[q] - s * dn;
-                    dk[q] = dn;
-                } else {
-                    let dn = c * dk[q] + s * beta[q];
-                    beta[q] = c * beta[q] - s * dk[q];
-                    dk[q] = dn;
-                }
+                let l = lane::<L>(q);
+                (dk[q], beta[q]) = turn(downdate, (c[l], s[l]), dk[q], beta[q]);
             }
             std::mem::swap(&mut w, &mut next);
             head = 0;
@@ -554,64 +666,44 @@ impl<const K: usize> SqrtInfo<K> {
         for &(k, g) in &self.gains {
             let dk = &mut self.d[k as usize];
             for q in 0..K {
-                dk[q] += g * delta[q];
+                dk[q] += g[lane::<L>(q)] * delta[q];
             }
         }
         true
     }
 
-    /// The same factor for the right-hand sides `columns` of this one, with R and d scaled by
-    /// `scale` (the factor of the same rows weighted by `scale²`).
-    pub fn columns<const M: usize>(&self, columns: [usize; M], scale: f64) -> SqrtInfo<M> {
-        let mut f = SqrtInfo::<M>::new();
-        f.pos_of.clone_from(&self.pos_of);
-        f.var_at.clone_from(&self.var_at);
-        f.diag = self.diag.iter().map(|&r| scale * r).collect();
-        f.rows = self
-            .rows
-            .iter()
-            .map(|row| Row {
-                pos: row.pos.clone(),
-                val: row.val.iter().map(|&v| scale * v).collect(),
-            })
-            .collect();
-        f.d = self
-            .d
-            .iter()
-            .map(|dk| columns.map(|q| scale * dk[q]))
-            .collect();
-        f.nnz = self.nnz;
-        f.x = vec![0.0; self.x.len()];
-        f
-    }
-
     /// Change the right-hand side of an existing row `a` by `Δβ`: `d ← d + R⁻ᵀ a Δβ`.
-    pub fn shift_rhs(&mut self, entries: &[(usize, f64)], delta: [f64; K]) {
+    pub fn shift_rhs<C: Lanes<L>>(&mut self, entries: &[(usize, C)], delta: [f64; K]) {
         self.forward(entries, |dk, y| {
-            for (dq, &sq) in dk.iter_mut().zip(&delta) {
-                *dq += y * sq;
+            for (q, (dq, &sq)) in dk.iter_mut().zip(&delta).enumerate() {
+                *dq += y[lane::<L>(q)] * sq;
             }
         });
     }
 
     /// Forward solve `Rᵀ y = a` on the positions it reaches (the elimination-tree paths of a's
     /// variables), in increasing order: `visit(d_k, y_k)` for each of them.
-    fn forward(&mut self, entries: &[(usize, f64)], mut visit: impl FnMut(&mut [f64; K], f64)) {
+    fn forward<C: Lanes<L>>(
+        &mut self,
+        entries: &[(usize, C)],
+        mut visit: impl FnMut(&mut [f64; K], [f64; L]),
+    ) {
         self.load(entries);
         let work_before = self.work;
         let mut w = std::mem::take(&mut self.w);
         let mut next = std::mem::take(&mut self.w_next);
         let mut head = 0;
         loop {
-            while head < w.len() && w.val[head] == 0.0 {
+            while head < w.len() && is_zero(&w.val[head]) {
                 head += 1;
             }
             if head >= w.len() {
                 break;
             }
             let (k, ak) = (w.pos[head] as usize, w.val[head]);
-            self.work += (1 + self.rows[k].len() + w.len() - head) as u64;
-            let y = ak / self.diag[k];
+            self.work += (L * (1 + self.rows[k].len() + w.len() - head)) as u64;
+            let diag = self.diag[k];
+            let y: [f64; L] = std::array::from_fn(|l| ak[l] / diag[l]);
             visit(&mut self.d[k], y);
             // a_j -= R_kj y for j in row k, merged with the rest of w.
             next.clear();
@@ -619,14 +711,16 @@ impl<const K: usize> SqrtInfo<K> {
             let rest = (&w.pos[head + 1..], &w.val[head + 1..]);
             if let Some((xs, inside)) = align(row, rest, &mut self.aligned) {
                 next.pos.extend_from_slice(&row.pos);
-                next.val
-                    .extend(row.val.iter().zip(xs).map(|(&a, &x)| x - a * y));
-                if next.val.contains(&0.0) {
+                next.val.extend(
+                    (row.val.iter().zip(xs))
+                        .map(|(a, x)| std::array::from_fn(|l| x[l] - a[l] * y[l])),
+                );
+                if has_zero(&next.val) {
                     drop_zeros(&mut next);
                 }
-                for (&p, &x) in rest.0[inside..].iter().zip(&rest.1[inside..]) {
-                    if x != 0.0 {
-                        next.push(p, x);
+                for (&p, x) in rest.0[inside..].iter().zip(&rest.1[inside..]) {
+                    if !is_zero(x) {
+                        next.push(p, *x);
                     }
                 }
             } else {
@@ -636,11 +730,11 @@ impl<const K: usize> SqrtInfo<K> {
                         (Some((pa, a)), Some((pb, b))) if pa == pb => {
                             i += 1;
                             j += 1;
-                            (pa, b - a * y)
+                            (pa, std::array::from_fn(|l| b[l] - a[l] * y[l]))
                         }
                         (Some((pa, a)), Some((pb, _))) if pa < pb => {
                             i += 1;
-                            (pa, -a * y)
+                            (pa, std::array::from_fn(|l| -a[l] * y[l]))
                         }
                         (Some(_), Some((pb, b))) => {
                             j += 1;
@@ -648,7 +742,7 @@ impl<const K: usize> SqrtInfo<K> {
                         }
                         (Some((pa, a)), None) => {
                             i += 1;
-                            (pa, -a * y)
+                            (pa, std::array::from_fn(|l| -a[l] * y[l]))
                         }
                         (None, Some((pb, b))) => {
                             j += 1;
@@ -656,7 +750,7 @@ impl<const K: usize> SqrtInfo<K> {
                         }
                         (None, None) => unreachable!(),
                     };
-                    if v != 0.0 {
+                    if !is_zero(&v) {
                         next.push(p, v);
                     }
                 }
@@ -686,9 +780,13 @@ impl<const K: usize> SqrtInfo<K> {
         let n = self.len();
         crate::work::estimated((n + self.nnz) as u64);
         let mut x = vec![0.0; n];
+        let l = lane::<L>(rhs);
         for p in (0..n).rev() {
-            let s: f64 = self.rows[p].iter().map(|(j, v)| v * x[j as usize]).sum();
-            x[p] = (self.d[p][rhs] - s) / self.diag[p];
+            let row = &self.rows[p];
+            let s: f64 = (row.pos.iter().zip(&row.val))
+                .map(|(&j, v)| v[l] * x[j as usize])
+                .sum();
+            x[p] = (self.d[p][rhs] - s) / self.diag[p][l];
         }
         let mut out = vec![0.0; self.pos_of.len()];
         for (p, &v) in self.var_at.iter().enumerate() {
@@ -733,14 +831,15 @@ impl<const K: usize> SqrtInfo<K> {
     /// the value at position p, its first element.
     fn back_along_path(&mut self, p: usize, q: usize) -> f64 {
         let mut visited = 0;
+        let l = lane::<L>(q);
         for &k in self.path.iter().rev() {
             let k = k as usize;
             visited += 1 + self.rows[k].len();
-            let s: f64 = self.rows[k]
-                .iter()
-                .map(|(j, a)| a * self.x[j as usize])
+            let row = &self.rows[k];
+            let s: f64 = (row.pos.iter().zip(&row.val))
+                .map(|(&j, a)| a[l] * self.x[j as usize])
                 .sum();
-            self.x[k] = (self.d[k][q] - s) / self.diag[k];
+            self.x[k] = (self.d[k][q] - s) / self.diag[k][l];
         }
         crate::work::estimated(visited as u64);
         self.x[p]
@@ -748,12 +847,66 @@ impl<const K: usize> SqrtInfo<K> {
 
     /// Variance of the combination `aᵀx`: `aᵀ(AᵀA)⁻¹a = ‖R⁻ᵀ a‖²` (one forward solve along
     /// the paths of a's variables; `a = e_v` gives a marginal variance).
-    pub fn marginal(&mut self, entries: &[(usize, f64)]) -> f64 {
-        let mut sum = 0.0;
-        self.forward(entries, |_, y| sum += y * y);
+    pub fn marginal<C: Lanes<L>>(&mut self, entries: &[(usize, C)]) -> [f64; L] {
+        let mut sum = [0.0; L];
+        self.forward(entries, |_, y| {
+            for (s, y) in sum.iter_mut().zip(y) {
+                *s += y * y;
+            }
+        });
         sum
     }
 
+    /// Recompute d from scratch for the rows given (`Rᵀ d = Σ_r a_r β_r`): one forward solve.
+    /// Resynchronises d after many right-hand-side shifts.
+    pub fn reset_rhs<const N: usize, C: Lanes<L>>(
+        &mut self,
+        rows: impl IntoIterator<Item = ([(usize, C); N], [f64; K])>,
+    ) {
+        self.reset_rhs_from(0, rows);
+    }
+
+    /// [`Self::reset_rhs`] for the right-hand sides `from..K` only (the others are kept): the
+    /// positions of a factor shared with the headings, re-linearised.
+    pub fn reset_rhs_from<const N: usize, C: Lanes<L>>(
+        &mut self,
+        from: usize,
+        rows: impl IntoIterator<Item = ([(usize, C); N], [f64; K])>,
+    ) {
+        let from = from.min(K);
+        let n = self.len();
+        crate::work::estimated((n + self.nnz) as u64);
+        let mut g = vec![[0.0; K]; n];
+        for (entries, beta) in rows {
+            for (v, a) in entries {
+                let p = self.pos_of[v] as usize;
+                let a = a.lanes();
+                for q in from..K {
+                    g[p][q] += a[lane::<L>(q)] * beta[q];
+                }
+            }
+        }
+        for k in 0..n {
+            let mut dk = g[k];
+            for (q, v) in dk.iter_mut().enumerate().skip(from) {
+                *v /= self.diag[k][lane::<L>(q)];
+            }
+            let row = &self.rows[k];
+            for (&j, a) in row.pos.iter().zip(&row.val) {
+                let gj = &mut g[j as usize];
+                // Every q, unrolled (K and the lanes known), the kept ones skipped.
+                for q in 0..K {
+                    if q >= from {
+                        gj[q] -= a[lane::<L>(q)] * dk[q];
+                    }
+                }
+            }
+            self.d[k][from..].copy_from_slice(&dk[from..]);
+        }
+    }
+}
+
+impl<const K: usize> SqrtInfo<K> {
     /// `Y = R⁻ᵀ [a₀ a₁ a₂]` for three rows on the same variables, as (position, row of Y)
     /// pairs, positions ascending: `YᵀY' = Aᵀ(AᵀA)⁻¹A'` for two such. A forward solve over the
     /// reach of the rows' variables (the union of their elimination-tree paths: the positions
@@ -789,13 +942,13 @@ impl<const K: usize> SqrtInfo<K> {
         let mut y = Vec::with_capacity(s.reach.len());
         for &k in &s.reach {
             let k = k as usize;
-            let yk = s.w[k].map(|v| v / self.diag[k]);
+            let yk = s.w[k].map(|v| v / self.diag[k][0]);
             s.w[k] = [0.0; 3];
             s.mark[k] = false;
             for (j, a) in self.rows[k].iter() {
                 let wj = &mut s.w[j as usize];
                 for q in 0..3 {
-                    wj[q] -= a * yk[q];
+                    wj[q] -= a[0] * yk[q];
                 }
             }
             y.push((k as u32, yk));
@@ -803,58 +956,45 @@ impl<const K: usize> SqrtInfo<K> {
         y
     }
 
-    /// Recompute d from scratch for the rows given (`Rᵀ d = Σ_r a_r β_r`): one forward solve.
-    /// Resynchronises d after many right-hand-side shifts.
-    pub fn reset_rhs<const N: usize>(
-        &mut self,
-        rows: impl IntoIterator<Item = ([(usize, f64); N], [f64; K])>,
-    ) {
-        self.reset_rhs_from(0, rows);
-    }
-
-    /// [`Self::reset_rhs`] for the right-hand sides `from..K` only (the others are kept): the
-    /// positions of a factor shared with the headings, re-linearised.
-    pub fn reset_rhs_from<const N: usize>(
-        &mut self,
-        from: usize,
-        rows: impl IntoIterator<Item = ([(usize, f64); N], [f64; K])>,
-    ) {
-        let from = from.min(K);
-        let n = self.len();
-        crate::work::estimated((n + self.nnz) as u64);
-        let mut g = vec![[0.0; K]; n];
-        for (entries, beta) in rows {
-            for (v, a) in entries {
-                let p = self.pos_of[v] as usize;
-                for q in from..K {
-                    g[p][q] += a * beta[q];
-                }
-            }
-        }
-        for k in 0..n {
-            let mut dk = g[k];
-            for v in &mut dk[from..] {
-                *v /= self.diag[k];
-            }
-            for (j, a) in self.rows[k].iter() {
-                for q in from..K {
-                    g[j as usize][q] -= a * dk[q];
-                }
-            }
-            self.d[k][from..].copy_from_slice(&dk[from..]);
-        }
+    /// The same rows in `M` lanes, lane m weighted by `scale[m]²` (R and the right-hand sides
+    /// of lane m scaled by `scale[m]`): how a factor shared by systems whose weights were
+    /// proportional becomes one factor of lanes when the proportion breaks.
+    pub fn widen<const M: usize>(&self, scale: [f64; M]) -> SqrtInfo<K, M> {
+        let mut f = SqrtInfo::<K, M>::new();
+        f.pos_of.clone_from(&self.pos_of);
+        f.var_at.clone_from(&self.var_at);
+        f.diag = self.diag.iter().map(|&[r]| scale.map(|m| m * r)).collect();
+        f.rows = self
+            .rows
+            .iter()
+            .map(|row| Row {
+                pos: row.pos.clone(),
+                val: row.val.iter().map(|&[v]| scale.map(|m| m * v)).collect(),
+            })
+            .collect();
+        f.d = self
+            .d
+            .iter()
+            .map(|dk| std::array::from_fn(|q| scale[lane::<M>(q)] * dk[q]))
+            .collect();
+        f.nnz = self.nnz;
+        f.x = vec![0.0; self.x.len()];
+        // A rotation's cosines and sines do not change when both rows scale alike.
+        f.gains = self.gains.iter().map(|&(k, [g])| (k, [g; M])).collect();
+        f.gains_valid = self.gains_valid;
+        f
     }
 }
 
-impl<const K: usize> SqrtInfo<K> {
+impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     /// The factor of the rows given, in the variable order `order`, computed at once: the
     /// normal equations `AᵀA` in that order factored by a sparse Cholesky (faer, simplicial),
     /// `R = Lᵀ`, then d by one forward solve. Far cheaper than rotating every row in; `None`
     /// when the Cholesky meets a non-positive pivot (extreme weights: the caller rotates the
     /// rows in instead, which is the better-conditioned QR).
-    pub fn factored<const N: usize>(
+    pub fn factored<const N: usize, C: Lanes<L>>(
         order: &[usize],
-        rows: impl Iterator<Item = ([(usize, f64); N], [f64; K])> + Clone,
+        rows: impl Iterator<Item = ([(usize, C); N], [f64; K])> + Clone,
     ) -> Option<Self> {
         use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
         use faer::linalg::cholesky::llt::factor::LltRegularization;
@@ -870,46 +1010,57 @@ impl<const K: usize> SqrtInfo<K> {
         // order), every diagonal present. Built here rather than from triplets: faer sorts a
         // triplet list as a whole, which took a third of this function's time. A column of d
         // entries costs its sort, O(d log d), however high a node's degree.
-        let mut diag = vec![0.0; n];
-        let mut cols: Vec<smallvec::SmallVec<[(usize, f64); 4]>> = vec![Default::default(); n];
+        let mut diag = vec![[0.0; L]; n];
+        let mut cols: Vec<NormalColumn<L>> = vec![Default::default(); n];
         for (entries, _) in rows.clone() {
             for &(u, a) in &entries {
                 for &(v, b) in &entries {
                     let (pu, pv) = (f.pos_of[u] as usize, f.pos_of[v] as usize);
-                    if a == 0.0 || b == 0.0 {
+                    let (a, b) = (a.lanes(), b.lanes());
+                    if is_zero(&a) || is_zero(&b) {
                         continue;
                     }
+                    let ab: [f64; L] = std::array::from_fn(|l| a[l] * b[l]);
                     if pu == pv {
-                        diag[pu] += a * b;
+                        for (d, x) in diag[pu].iter_mut().zip(ab) {
+                            *d += x;
+                        }
                     } else if pu < pv {
-                        cols[pv].push((pu, a * b));
+                        cols[pv].push((pu, ab));
                     }
                 }
             }
         }
         let mut col_ptr = Vec::with_capacity(n + 1);
         let mut row_idx: Vec<usize> = Vec::new();
-        let mut a_values: Vec<f64> = Vec::new();
+        // The lanes' values apart (faer takes one slice per matrix).
+        let mut a_values: [Vec<f64>; L] = std::array::from_fn(|_| Vec::new());
         col_ptr.push(0usize);
         for (p, col) in cols.iter_mut().enumerate() {
             col.sort_by_key(|&(r, _)| r);
             let start = row_idx.len();
             for &(r, x) in col.iter() {
-                match a_values.last_mut() {
-                    Some(last) if row_idx.len() > start && row_idx.last() == Some(&r) => *last += x,
-                    _ => {
-                        row_idx.push(r);
-                        a_values.push(x);
+                if row_idx.len() > start && row_idx.last() == Some(&r) {
+                    for (values, x) in a_values.iter_mut().zip(x) {
+                        if let Some(last) = values.last_mut() {
+                            *last += x;
+                        }
+                    }
+                } else {
+                    row_idx.push(r);
+                    for (values, x) in a_values.iter_mut().zip(x) {
+                        values.push(x);
                     }
                 }
             }
             row_idx.push(p);
-            a_values.push(diag[p]);
+            for (values, x) in a_values.iter_mut().zip(diag[p]) {
+                values.push(x);
+            }
             col_ptr.push(row_idx.len());
         }
         drop(cols);
         let pattern = SymbolicSparseColMatRef::new_checked(n, n, &col_ptr, None, &row_idx);
-        let a = SparseColMatRef::new(pattern, &a_values);
         let nnz = row_idx.len();
         let mut mem = MemBuffer::try_new(StackReq::any_of(&[
             simplicial::prefactorize_symbolic_cholesky_scratch::<usize>(n, nnz),
@@ -924,26 +1075,30 @@ impl<const K: usize> SqrtInfo<K> {
         let symbolic =
             simplicial::factorize_simplicial_symbolic_cholesky(pattern, tree, &counts, stack)
                 .ok()?;
-        let mut values = vec![0.0; symbolic.len_val()];
-        simplicial::factorize_simplicial_numeric_llt(
-            &mut values,
-            a,
-            LltRegularization::default(),
-            &symbolic,
-            stack,
-        )
-        .ok()?;
+        // One numeric factorization per lane, on the one symbolic structure.
+        let mut values: [Vec<f64>; L] = std::array::from_fn(|_| vec![0.0; symbolic.len_val()]);
+        for (values, a_values) in values.iter_mut().zip(&a_values) {
+            simplicial::factorize_simplicial_numeric_llt(
+                values,
+                SparseColMatRef::new(pattern, a_values),
+                LltRegularization::default(),
+                &symbolic,
+                &mut *stack,
+            )
+            .ok()?;
+        }
         // Column j of L is row j of R: its diagonal, then the positions below it.
         let (col_ptr, row_idx) = (symbolic.col_ptr(), symbolic.row_idx());
-        let mut entries: Vec<(u32, f64)> = Vec::new();
+        let mut entries: Vec<(u32, [f64; L])> = Vec::new();
         for j in 0..n {
             entries.clear();
             for t in col_ptr[j]..col_ptr[j + 1] {
                 let i = row_idx[t];
+                let v: [f64; L] = std::array::from_fn(|l| values[l][t]);
                 if i == j {
-                    f.diag[j] = values[t];
-                } else if values[t] != 0.0 {
-                    entries.push((i as u32, values[t]));
+                    f.diag[j] = v;
+                } else if !is_zero(&v) {
+                    entries.push((i as u32, v));
                 }
             }
             entries.sort_unstable_by_key(|&(p, _)| p);
@@ -957,7 +1112,11 @@ impl<const K: usize> SqrtInfo<K> {
             f.nnz += row.len();
             f.rows[j] = row;
         }
-        if f.diag.iter().any(|&r| !(r > 0.0 && r.is_finite())) {
+        if f.diag
+            .iter()
+            .flatten()
+            .any(|&r| !(r > 0.0 && r.is_finite()))
+        {
             return None;
         }
         f.reset_rhs(rows);
@@ -971,11 +1130,11 @@ impl<const K: usize> SqrtInfo<K> {
 /// column). `None` when `rest` has a position within that range that `row` lacks (fill inside
 /// the row: the caller merges). The common case: after its first entry a row's pattern lies in
 /// its parent's, so the row being rotated in carries row k's pattern, or part of it.
-fn align<'a>(
-    row: &Row,
-    (rest_pos, rest_val): (&[u32], &'a [f64]),
-    aligned: &'a mut Vec<f64>,
-) -> Option<(&'a [f64], usize)> {
+fn align<'a, const L: usize>(
+    row: &Row<L>,
+    (rest_pos, rest_val): (&[u32], &'a [[f64; L]]),
+    aligned: &'a mut Vec<[f64; L]>,
+) -> Option<(&'a [[f64; L]], usize)> {
     let l = row.len();
     // Row k's pattern exactly (then whatever follows lies beyond its last position).
     if rest_pos.len() >= l && same(&rest_pos[..l], &row.pos) {
@@ -983,7 +1142,7 @@ fn align<'a>(
     }
     let last = row.pos.last().copied().unwrap_or(0);
     aligned.clear();
-    aligned.resize(l, 0.0);
+    aligned.resize(l, [0.0; L]);
     let mut t = 0;
     let mut inside = 0;
     for (&p, &x) in rest_pos.iter().zip(rest_val) {
@@ -1010,11 +1169,11 @@ fn same(a: &[u32], b: &[u32]) -> bool {
     a.len() == b.len() && a.iter().zip(b).fold(0, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
-/// Drop the zeros of `row` (in order).
-fn drop_zeros(row: &mut Row) {
+/// Drop the zeros of `row` (entries zero in every lane; in order).
+fn drop_zeros<const L: usize>(row: &mut Row<L>) {
     let mut o = 0;
     for t in 0..row.len() {
-        if row.val[t] != 0.0 {
+        if !is_zero(&row.val[t]) {
             row.pos[o] = row.pos[t];
             row.val[o] = row.val[t];
             o += 1;
@@ -1031,29 +1190,45 @@ fn drop_zeros(row: &mut Row) {
 /// `next` holds the row's values on row k's whole pattern. Returns the number of entries
 /// appended to row k and whether `next` has zeros (which the row drops); `None`, with
 /// nothing changed, when there is fill inside the row.
-fn rotate_in_place(
-    row: &mut Row,
-    (c, s): (f64, f64),
-    (rest_pos, rest_val): (&[u32], &[f64]),
-    next: &mut Vec<f64>,
-    aligned: &mut Vec<f64>,
+fn rotate_in_place<const L: usize>(
+    row: &mut Row<L>,
+    (c, s): ([f64; L], [f64; L]),
+    (rest_pos, rest_val): (&[u32], &[[f64; L]]),
+    next: &mut Vec<[f64; L]>,
+    aligned: &mut Vec<[f64; L]>,
 ) -> Option<(usize, bool)> {
     let (xs, inside) = align(row, (rest_pos, rest_val), aligned)?;
     next.clear();
-    next.extend(row.val.iter_mut().zip(xs).map(|(r, &x)| {
+    next.extend(row.val.iter_mut().zip(xs).map(|(r, x)| {
         let rkj = *r;
-        *r = c * rkj + s * x;
-        c * x - s * rkj
+        let mut wn = [0.0; L];
+        for l in 0..L {
+            r[l] = c[l] * rkj[l] + s[l] * x[l];
+            wn[l] = c[l] * x[l] - s[l] * rkj[l];
+        }
+        wn
     }));
-    let mut zero = next.contains(&0.0);
-    for (&p, &x) in rest_pos[inside..].iter().zip(&rest_val[inside..]) {
+    let mut zero = has_zero(next);
+    for (&p, x) in rest_pos[inside..].iter().zip(&rest_val[inside..]) {
         let rkj = 0.0;
-        row.push(p, c * rkj + s * x);
-        let wn = c * x - s * rkj;
-        zero |= wn == 0.0;
+        row.push(p, std::array::from_fn(|l| c[l] * rkj + s[l] * x[l]));
+        let wn = std::array::from_fn(|l| c[l] * x[l] - s[l] * rkj);
+        zero |= is_zero(&wn);
         next.push(wn);
     }
     Some((rest_pos.len() - inside, zero))
+}
+
+/// One Givens rotation (a hyperbolic one when `downdate`) of a pair: (row k's entry, the row's
+/// entry) → their rotated values.
+#[inline(always)]
+fn turn(downdate: bool, (c, s): (f64, f64), rkj: f64, wj: f64) -> (f64, f64) {
+    if downdate {
+        let rn = (rkj - s * wj) / c;
+        (rn, c * wj - s * rn)
+    } else {
+        (c * rkj + s * wj, c * wj - s * rkj)
+    }
 }
 
 /// A fill-reducing order of the variables `0..n` of a graph with the given edges (approximate
@@ -1207,6 +1382,112 @@ mod tests {
         ((*state >> 11) as f64) / ((1u64 << 53) as f64)
     }
 
+    /// A factor of two lanes (the same rows, each lane with its own coefficients) is two
+    /// factors of one lane: the same solutions, variances, predictions and leftovers through
+    /// rows added, tried and taken back, shifted and removed, and built at once.
+    #[test]
+    fn two_lanes_are_two_factors() {
+        let n = 40;
+        let mut s = 7u64;
+        let mut wide = SqrtInfo::<3, 2>::new();
+        let mut one = SqrtInfo::<1>::new();
+        let mut two = SqrtInfo::<2>::new();
+        for v in 0..n {
+            wide.push_variable(v);
+            one.push_variable(v);
+            two.push_variable(v);
+        }
+        // Row `(a, b)` with weight ratio `1 + 3·u` between the lanes.
+        type Rows = Vec<([(usize, [f64; 2]); 2], [f64; 3])>;
+        let mut rows: Rows = Vec::new();
+        let add = |a: usize, b: usize, s: &mut u64, rows: &mut Rows| {
+            let (w0, w1) = (0.5 + lcg(s), (0.5 + lcg(s)) * (1.0 + 3.0 * lcg(s)));
+            let entries = [(a, [-w0, -w1]), (b, [w0, w1])];
+            let beta = [lcg(s), lcg(s), lcg(s)];
+            rows.push((entries, beta));
+            entries
+        };
+        let check = |wide: &mut SqrtInfo<3, 2>, one: &mut SqrtInfo<1>, two: &mut SqrtInfo<2>| {
+            let close = |x: &[f64], y: &[f64]| x.iter().zip(y).all(|(a, b)| (a - b).abs() < 1e-10);
+            assert!(close(&wide.solve(0), &one.solve(0)));
+            assert!(close(&wide.solve(1), &two.solve(0)) && close(&wide.solve(2), &two.solve(1)));
+            for v in [3, 17, n - 1] {
+                let [v0, v1] = wide.marginal(&[(v, [1.0; 2])]);
+                let ([u0], [u1]) = (one.marginal(&[(v, 1.0)]), two.marginal(&[(v, 1.0)]));
+                assert!((v0 - u0).abs() < 1e-10 && (v1 - u1).abs() < 1e-10);
+            }
+        };
+        let split = |entries: &[(usize, [f64; 2]); 2], l: usize| entries.map(|(v, a)| (v, a[l]));
+        let prior = [(0, [2.0, 3.0])];
+        wide.add_row(&prior, [0.0; 3]);
+        one.add_row(&[(0, 2.0)], [0.0]);
+        two.add_row(&[(0, 3.0)], [0.0; 2]);
+        for b in 1..n {
+            let mut ends = vec![(b - 1, b)];
+            if b % 4 == 0 && b > 8 {
+                ends.push(((lcg(&mut s) * (b - 4) as f64) as usize, b));
+            }
+            for (a, b) in ends {
+                let e = add(a, b, &mut s, &mut rows);
+                let beta = rows[rows.len() - 1].1;
+                let left = wide.add_row(&e, beta);
+                let l1 = one.add_row(&split(&e, 0), [beta[0]]);
+                let l2 = two.add_row(&split(&e, 1), [beta[1], beta[2]]);
+                let close = |a: f64, b: f64| (a - b).abs() < 1e-10;
+                assert!(
+                    close(left.residual[0], l1.residual[0])
+                        && close(left.cosines[0], l1.cosines[0])
+                );
+                assert!(
+                    close(left.residual[2], l2.residual[1])
+                        && close(left.cosines[1], l2.cosines[0])
+                );
+            }
+        }
+        check(&mut wide, &mut one, &mut two);
+        // The last row's right-hand side shifted, by its gains and by a forward solve.
+        assert!(wide.shift_last_row([0.3, -0.2, 0.5]));
+        assert!(one.shift_last_row([0.3]) && two.shift_last_row([-0.2, 0.5]));
+        let (e, _) = rows[5];
+        wide.shift_rhs(&e, [0.1, 0.2, -0.3]);
+        one.shift_rhs(&split(&e, 0), [0.1]);
+        two.shift_rhs(&split(&e, 1), [0.2, -0.3]);
+        check(&mut wide, &mut one, &mut two);
+        // A loop closure tried and taken back: bit for bit.
+        let e = [(2, [-1.5, -4.0]), (n - 2, [1.5, 4.0])];
+        let before = wide.clone();
+        let left = wide.try_row(&e, [0.2, 0.1, -0.1]);
+        let [l0] = one.clone().try_row(&split(&e, 0), [0.2]).cosines;
+        let [l1] = two.clone().try_row(&split(&e, 1), [0.1, -0.1]).cosines;
+        assert!((left.cosines[0] - l0).abs() < 1e-12 && (left.cosines[1] - l1).abs() < 1e-12);
+        wide.undo_row();
+        assert_eq!(
+            (&wide.rows, &wide.diag, &wide.d),
+            (&before.rows, &before.diag, &before.d)
+        );
+        // A row removed (hyperbolic rotations).
+        let (e, beta) = rows[9];
+        wide.remove_row(&e, beta).unwrap();
+        one.remove_row(&split(&e, 0), [beta[0]]).unwrap();
+        two.remove_row(&split(&e, 1), [beta[1], beta[2]]).unwrap();
+        check(&mut wide, &mut one, &mut two);
+        // Built at once from the rows left (one order, one structure, a Cholesky per lane).
+        rows.remove(9);
+        let order: Vec<usize> = (0..n).rev().collect();
+        let priors = [([(0, [2.0, 3.0]), (0, [0.0; 2])], [0.0; 3])];
+        let all = || priors.iter().chain(&rows).copied();
+        let mut wide = SqrtInfo::<3, 2>::factored(&order, all()).unwrap();
+        let mut one =
+            SqrtInfo::<1>::factored(&order, all().map(|(e, b)| (split(&e, 0), [b[0]]))).unwrap();
+        let mut two =
+            SqrtInfo::<2>::factored(&order, all().map(|(e, b)| (split(&e, 1), [b[1], b[2]])))
+                .unwrap();
+        one.shift_rhs(&split(&rows[5].0, 0), [0.1]);
+        two.shift_rhs(&split(&rows[5].0, 1), [0.2, -0.3]);
+        wide.shift_rhs(&rows[5].0, [0.1, 0.2, -0.3]);
+        check(&mut wide, &mut one, &mut two);
+    }
+
     /// Growing, down-dating and shifting agree with dense normal equations.
     #[test]
     fn incremental_rows_match_dense_least_squares() {
@@ -1246,7 +1527,7 @@ mod tests {
             for v in 0..n {
                 assert!((all[v] - x[v]).abs() < 1e-9, "{v}: {} vs {}", all[v], x[v]);
                 assert!((f.value(v)[0] - x[v]).abs() < 1e-9);
-                assert!((f.marginal(&[(v, 1.0)]) - var[0][v]).abs() < 1e-9);
+                assert!((f.marginal(&[(v, 1.0)])[0] - var[0][v]).abs() < 1e-9);
             }
         };
         check(&mut f, &rows);
@@ -1318,12 +1599,24 @@ mod tests {
                 assert!((x - y).abs() < 1e-12, "{x} vs {y}");
             }
         }
-        let scaled = f.columns([1], 3.0);
-        for (x, y) in scaled.solve(0).iter().zip(f.solve(1)) {
-            assert!((x - y).abs() < 1e-12, "{x} vs {y}");
+        // Widened to two lanes, the second weighted 9×: the same solution, a ninth of the
+        // variance in that lane, and the gains still shift the last row.
+        let mut wide = f.widen([1.0, 3.0]);
+        for q in 0..2 {
+            for (x, y) in wide.solve(q).iter().zip(f.solve(q)) {
+                assert!((x - y).abs() < 1e-12, "{x} vs {y}");
+            }
         }
-        let mut scaled = scaled;
-        assert!((9.0 * scaled.marginal(&[(5, 1.0)]) - f.marginal(&[(5, 1.0)])).abs() < 1e-12);
+        let [v0, v1] = wide.marginal(&[(5, [1.0; 2])]);
+        let [v] = f.marginal(&[(5, 1.0)]);
+        assert!((v0 - v).abs() < 1e-12 && (9.0 * v1 - v).abs() < 1e-12);
+        let mut g = f.clone();
+        assert!(wide.shift_last_row([0.25, 1.0]) && g.shift_last_row([0.25, 1.0 / 3.0]));
+        for q in 0..2 {
+            for (x, y) in wide.solve(q).iter().zip(g.solve(q)) {
+                assert!((x - y).abs() < 1e-12, "{x} vs {y}");
+            }
+        }
         f.remove_row(&last, [beta[0] + 0.5, beta[1] - 2.0]).unwrap();
         assert!(!f.shift_last_row([1.0, 1.0]));
     }
@@ -1358,13 +1651,14 @@ mod tests {
         let beta = [0.4, -1.1];
         let x0 = f.solve(0);
         let predicted = 3.0 * (x0[n - 3] - x0[2]);
-        let var = f.marginal(&row);
+        let [var] = f.marginal(&row);
         let before = f.clone();
         let left = f.try_row(&row, beta);
-        assert!(left.cosines > 0.0 && left.cosines < 1.0);
-        let error = left.residual[0] / left.cosines;
+        let [cosines] = left.cosines;
+        assert!(cosines > 0.0 && cosines < 1.0);
+        let error = left.residual[0] / cosines;
         assert!((error - (beta[0] - predicted)).abs() < 1e-12, "{error}");
-        let ratio = 1.0 / (left.cosines * left.cosines) - 1.0;
+        let ratio = 1.0 / (cosines * cosines) - 1.0;
         assert!(
             (ratio - var).abs() < 1e-12 * var.max(1.0),
             "{ratio} vs {var}"
@@ -1439,8 +1733,8 @@ mod tests {
         add(&mut f, &mut rows, vec![(0, 0.3), (2, 0.9), (3, -1.2)], 0.8);
         assert_eq!(f.rows[0].pos, [2, 3]);
         // Row 0 of R itself: every entry of the row being rotated cancels exactly.
-        let r0: Vec<(usize, f64)> = std::iter::once((0, f.diag[0]))
-            .chain(f.rows[0].iter().map(|(p, v)| (p as usize, v)))
+        let r0: Vec<(usize, f64)> = std::iter::once((0, f.diag[0][0]))
+            .chain(f.rows[0].iter().map(|(p, [v])| (p as usize, v)))
             .collect();
         let nnz = f.nnz;
         add(&mut f, &mut rows, r0, 0.0);
@@ -1457,7 +1751,7 @@ mod tests {
         let all = f.solve(0);
         for v in 0..n {
             assert!((all[v] - x[v]).abs() < 1e-9, "{v}: {} vs {}", all[v], x[v]);
-            assert!((f.marginal(&[(v, 1.0)]) - var[0][v]).abs() < 1e-9);
+            assert!((f.marginal(&[(v, 1.0)])[0] - var[0][v]).abs() < 1e-9);
         }
     }
 

@@ -28,7 +28,7 @@
 //! in a backlog, appended to P_UU (or P_UU rebuilt in a fill-reducing order, when they are
 //! many) before anything uses it: a cycle that must be screened by P_UU (some cycle is
 //! ambiguous, so its chord is in `R` with a guessed wrap; the factors are deferred within a
-//! replay; or the new edge would split a shared factor), the second screening, `finish`.
+//! replay; or the new edge would widen a shared factor to two lanes), the second screening, `finish`.
 //! The success bound takes the backlog's conditional deviations as they were when determined.
 //! On city10000 in robot order, the newest pose read after every step, this took the steps
 //! from 1.50–1.54 s to 1.10–1.20 s and the worst step from 4.1–5.6 ms to 1.3–2.0 ms (no P_UU
@@ -48,7 +48,7 @@ impl OnlineEstimator {
     /// the determined cycles, from the estimate's factor (module docs: one factor), with the
     /// chord's heading row rotated in tentatively ([`Estimate::try_chord`](super::estimate::Estimate::try_chord)): `None` when P_UU
     /// must give them (an ambiguous cycle's chord is in the factor with a guessed wrap, the
-    /// factors are deferred, or the edge would split them).
+    /// factors are deferred, or the edge would widen the factor).
     pub(super) fn predict(
         &mut self,
         cycle: &Cycle,
