@@ -776,23 +776,40 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     }
 
     /// Every variable's value, indexed by variable (one back-substitution).
+    #[cfg(test)]
     pub fn solve(&self, rhs: usize) -> Vec<f64> {
+        let [x] = self.solve_columns([rhs]);
+        x
+    }
+
+    /// Every variable's value for the right-hand sides `columns`, indexed by variable: one
+    /// back-substitution for all of them (R read once; each column's sums in the order
+    /// [`Self::solve`] of that column alone takes).
+    pub fn solve_columns<const M: usize>(&self, columns: [usize; M]) -> [Vec<f64>; M] {
         let n = self.len();
-        crate::work::estimated((n + self.nnz) as u64);
-        let mut x = vec![0.0; n];
-        let l = lane::<L>(rhs);
+        crate::work::estimated((M * (n + self.nnz)) as u64);
+        let mut x = vec![[0.0; M]; n];
+        let lanes = columns.map(lane::<L>);
         for p in (0..n).rev() {
             let row = &self.rows[p];
-            let s: f64 = (row.pos.iter().zip(&row.val))
-                .map(|(&j, v)| v[l] * x[j as usize])
-                .sum();
-            x[p] = (self.d[p][rhs] - s) / self.diag[p][l];
+            let mut s = [0.0; M];
+            for (&j, v) in row.pos.iter().zip(&row.val) {
+                let xj = &x[j as usize];
+                for m in 0..M {
+                    s[m] += v[lanes[m]] * xj[m];
+                }
+            }
+            for m in 0..M {
+                x[p][m] = (self.d[p][columns[m]] - s[m]) / self.diag[p][lanes[m]];
+            }
         }
-        let mut out = vec![0.0; self.pos_of.len()];
-        for (p, &v) in self.var_at.iter().enumerate() {
-            out[v as usize] = x[p];
-        }
-        out
+        std::array::from_fn(|m| {
+            let mut out = vec![0.0; self.pos_of.len()];
+            for (p, &v) in self.var_at.iter().enumerate() {
+                out[v as usize] = x[p][m];
+            }
+            out
+        })
     }
 
     /// One variable's value for every right-hand side: back-substitution along its
@@ -1410,6 +1427,9 @@ mod tests {
         let check = |wide: &mut SqrtInfo<3, 2>, one: &mut SqrtInfo<1>, two: &mut SqrtInfo<2>| {
             let close = |x: &[f64], y: &[f64]| x.iter().zip(y).all(|(a, b)| (a - b).abs() < 1e-10);
             assert!(close(&wide.solve(0), &one.solve(0)));
+            // One back-substitution for several columns: each column's bits.
+            let [x0, x1, x2] = wide.solve_columns([0, 1, 2]);
+            assert_eq!([x0, x1, x2], [wide.solve(0), wide.solve(1), wide.solve(2)]);
             assert!(close(&wide.solve(1), &two.solve(0)) && close(&wide.solve(2), &two.solve(1)));
             for v in [3, 17, n - 1] {
                 let [v0, v1] = wide.marginal(&[(v, [1.0; 2])]);

@@ -455,7 +455,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         relinearise(&mut self.rows.y);
         let saved_d = self.factor.rhs().to_vec();
         reset_rhs(&mut self.factor, &self.rows, 0);
-        let out = columns.map(|q| self.all(q));
+        let out = self.all_columns(columns);
         self.rows.y = saved_y;
         self.factor.set_rhs(saved_d);
         out
@@ -475,20 +475,28 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     /// Values of every node for right-hand side q: one back-substitution (each relative to
     /// its anchor, which removes the rounding of the common mode).
     pub fn all(&mut self, q: usize) -> Vec<f64> {
-        let mut x = self.factor.solve(q);
-        for v in 0..x.len() {
-            let r = self.components.find(v);
-            let a = self.anchor[r];
-            if a != v {
-                x[v] -= x[a];
-            }
-        }
-        for (xv, &p) in x.iter_mut().zip(&self.prior) {
-            if p != [0.0; L] {
-                *xv = 0.0;
-            }
-        }
+        let [x] = self.all_columns([q]);
         x
+    }
+
+    /// [`Self::all`] for the right-hand sides `columns`, in one back-substitution.
+    pub fn all_columns<const M: usize>(&mut self, columns: [usize; M]) -> [Vec<f64>; M] {
+        let mut xs = self.factor.solve_columns(columns);
+        for x in &mut xs {
+            for v in 0..x.len() {
+                let r = self.components.find(v);
+                let a = self.anchor[r];
+                if a != v {
+                    x[v] -= x[a];
+                }
+            }
+            for (xv, &p) in x.iter_mut().zip(&self.prior) {
+                if p != [0.0; L] {
+                    *xv = 0.0;
+                }
+            }
+        }
+        xs
     }
 
     /// Marginal variance of node v in the anchored system: `Var(θ_v − θ_anchor)` (0 for an
