@@ -287,33 +287,31 @@ impl Factors {
             && ratio.is_none_or(|l| (l - r).abs() <= RATIO_TOLERANCE * l)
     }
 
-    /// Edge a → b's rows (heading weight `w`, position weight `w_pos`; the positions'
-    /// right-hand sides 0 until its position row), tentatively when `tried`
-    /// ([`Laplacian::try_edge`]): its leftover in the headings' lane.
-    fn add_edge(
+    /// Edge a → b's row (heading weight `w`, position weight `w_pos`, heading measurement
+    /// `y`; the positions' right-hand sides 0 until its position row).
+    fn add_edge(&mut self, (a, b): (usize, usize), (w, w_pos): (f64, f64), y: f64) {
+        let y = [y, 0.0, 0.0];
+        match self {
+            Factors::Shared { both, .. } => both.add_edge(a, b, w, y),
+            Factors::Lanes { both } => both.add_edge(a, b, [w, w_pos], y),
+        }
+    }
+
+    /// [`Self::add_edge`] tentatively ([`Laplacian::try_edge`]): the residual and the product
+    /// of the cosines it leaves in the headings' lane.
+    fn try_edge(
         &mut self,
         (a, b): (usize, usize),
         (w, w_pos): (f64, f64),
         y: f64,
-        tried: bool,
     ) -> Option<(f64, f64)> {
         let y = [y, 0.0, 0.0];
         match self {
-            Factors::Shared { both, .. } if tried => {
-                let l = both.try_edge(a, b, w, y)?;
-                Some((l.residual[0], l.cosines[0]))
-            }
-            Factors::Lanes { both } if tried => {
-                let l = both.try_edge(a, b, [w, w_pos], y)?;
-                Some((l.residual[0], l.cosines[0]))
-            }
             Factors::Shared { both, .. } => {
-                both.add_edge(a, b, w, y);
-                None
+                (both.try_edge(a, b, w, y)).map(|l| (l.residual[0], l.cosines[0]))
             }
             Factors::Lanes { both } => {
-                both.add_edge(a, b, [w, w_pos], y);
-                None
+                (both.try_edge(a, b, [w, w_pos], y)).map(|l| (l.residual[0], l.cosines[0]))
             }
         }
     }
@@ -415,9 +413,7 @@ impl Estimate {
         if self.factors.deferred() || !self.factors.keeps(w, w_pos, isotropic) {
             return None;
         }
-        let (residual, cosines) = self
-            .factors
-            .add_edge((a, b), (w, w_pos), edge.delta(), true)?;
+        let (residual, cosines) = self.factors.try_edge((a, b), (w, w_pos), edge.delta())?;
         self.tried = Some((w, w_pos, isotropic));
         Some(Prediction {
             innovation: residual / (w.sqrt() * cosines),
@@ -465,7 +461,7 @@ impl Estimate {
                     self.factors.admit(w, w_pos, isotropic);
                     // The position components come with the position row.
                     let (a, b) = (a as usize, b as usize);
-                    self.factors.add_edge((a, b), (w, w_pos), y, false);
+                    self.factors.add_edge((a, b), (w, w_pos), y);
                 }
                 Op::Wrap { e, y } => with_factor!(&mut self.factors, both => {
                     let [_, px, py] = both.y(e as usize);
