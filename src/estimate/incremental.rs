@@ -783,8 +783,8 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     }
 
     /// Every variable's value for the right-hand sides `columns`, indexed by variable: one
-    /// back-substitution for all of them (R read once; each column's sums in the order
-    /// [`Self::solve`] of that column alone takes).
+    /// back-substitution for all of them (R read once; each column summed in the order
+    /// of a back-substitution of that column alone: the same bits).
     pub fn solve_columns<const M: usize>(&self, columns: [usize; M]) -> [Vec<f64>; M] {
         let n = self.len();
         crate::work::estimated((M * (n + self.nnz)) as u64);
