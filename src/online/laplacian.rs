@@ -91,20 +91,22 @@ const WORK_PER_NONZERO: f64 = 96.0;
 /// (With `^0.4`, 1.5 from 10 000 variables: city10000 waited at 17–19 collections against 10
 /// with `^0.8`, four alternating runs.)
 fn work_per_nonzero(n: usize, lanes: usize) -> f64 {
-    WORK_PER_NONZERO
-        * (n as f64 / 3_500.0).powf(0.8).clamp(1.0, 1.5)
-        * (1.0 + EXTRA_LANE_BUILD * lanes.saturating_sub(1) as f64)
+    let size = (n as f64 / 3_500.0).powf(0.8).clamp(1.0, 1.5);
+    WORK_PER_NONZERO * size * (1.0 + size * EXTRA_LANE_BUILD * lanes.saturating_sub(1) as f64)
 }
 
 /// What each lane beyond the first adds to a renewal's build, relative to the live work of
 /// that lane (which [`SqrtInfo::take_work`] counts per value, so a two-lane factor's work
-/// comes twice as fast): a build of two lanes makes one order and one symbolic factorization
-/// for both, but two numeric ones, and rotates two lanes. Measured on M3500 (two lanes:
-/// `so2lin stream M3500.g2o --json`, robot order, the newest pose read after every step, ten
-/// alternating runs each, 2026-12-05): at 0 its collections waited for the builder and the
-/// worst step was 2.4–3.1 ms in a slow hour (1.4–1.9 ms in a quiet one); at 0.15 1.1–2.6 ms;
-/// at 0.3 0.9–1.2 ms (0.45–0.86), against 0.5–0.65 ms for the two one-lane factors this
-/// replaced.
+/// comes twice as fast), at M3500's size; it grows with the factor as the build's cost per
+/// nonzero does ([`work_per_nonzero`]'s size factor): a build of two lanes makes one order and
+/// one symbolic factorization for both, but two numeric ones, and rotates two lanes. Measured
+/// (`so2lin stream FILE --json`, robot order, the newest pose read after every step,
+/// alternating runs, 2026-12-05): on M3500 at 0 its collections waited for the builder and
+/// the worst step was 2.4–3.1 ms in a slow hour (1.4–1.9 ms in a quiet one); at 0.15
+/// 1.1–2.6 ms; at 0.3 0.9–1.2 ms (0.45–0.86), against 0.5–0.65 ms for the two one-lane
+/// factors this replaced. On ais2klinik (15 115 poses) a flat 0.3 left the worst step at
+/// 2.7–8.5 ms (over 2 ms in 7 of 8 runs, against 3 of 8 for the two factors); grown with the
+/// size, 1.4–3.5 ms (1 of 8), p99 289–291 against 345–358 µs.
 const EXTRA_LANE_BUILD: f64 = 0.3;
 
 /// A change to the system, sent to a renewal's builder so that it keeps its copy up to date
