@@ -1217,19 +1217,20 @@ fn rotate_in_place<const L: usize>(
     let (xs, inside) = align(row, (rest_pos, rest_val), aligned)?;
     next.clear();
     next.extend(row.val.iter_mut().zip(xs).map(|(r, x)| {
-        let rkj = *r;
         let mut wn = [0.0; L];
         for l in 0..L {
-            r[l] = c[l] * rkj[l] + s[l] * x[l];
-            wn[l] = c[l] * x[l] - s[l] * rkj[l];
+            (r[l], wn[l]) = turn(false, (c[l], s[l]), r[l], x[l]);
         }
         wn
     }));
     let mut zero = has_zero(next);
     for (&p, x) in rest_pos[inside..].iter().zip(&rest_val[inside..]) {
-        let rkj = 0.0;
-        row.push(p, std::array::from_fn(|l| c[l] * rkj + s[l] * x[l]));
-        let wn = std::array::from_fn(|l| c[l] * x[l] - s[l] * rkj);
+        // Fill beyond row k's last position: row k's entry there is 0.
+        let (mut rn, mut wn) = ([0.0; L], [0.0; L]);
+        for l in 0..L {
+            (rn[l], wn[l]) = turn(false, (c[l], s[l]), 0.0, x[l]);
+        }
+        row.push(p, rn);
         zero |= is_zero(&wn);
         next.push(wn);
     }

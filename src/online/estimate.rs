@@ -56,9 +56,9 @@
 //! to two lanes (R as it is for the headings; R and d times `√λ` for the positions), each row
 //! then carrying its heading weight in lane 0 and its position weight in lane 1. Two factors
 //! with two builders, as this was before (2026-12-05), walked every path twice: M3500 took
-//! 0.070 s of steps against 0.057 s with the lanes, p99 123 against 120 µs (`so2lin stream
-//! M3500.g2o --json`, robot order, the newest pose read after every step, ten alternating
-//! runs).
+//! 0.071–0.074 s of steps against 0.058–0.060 s with the lanes, p99 125–131 against 125–130 µs,
+//! worst step over 2 ms in one run of 38 each (`so2lin stream M3500.g2o --json`, robot order,
+//! the newest pose read after every step; medians of three batches of alternating runs).
 
 use super::laplacian::{Laplacian, RenewalEvent};
 use crate::estimate::EstimateError;
@@ -222,8 +222,7 @@ fn tails(graph: &PoseGraph, edges: usize) -> impl Iterator<Item = (usize, Pose2)
         .map(|(&(a, _), e)| (a, e.measurement()))
 }
 
-/// [`write_relinearised`] as a job to run later (a renewal's builder, a rebuild): the tails
-/// are copied now.
+/// [`write_relinearised`] as a job for a renewal's builder: the tails are copied now.
 fn relinearise<const K: usize>(
     theta: Vec<f64>,
     graph: &PoseGraph,
@@ -342,7 +341,7 @@ impl Factors {
             return;
         }
         let edges = self.position_rows();
-        with_factor!(self, both => both.rebuild(None));
+        with_factor!(self, both => both.rebuild());
         self.relinearise_positions(graph, edges);
         // The rebuild's answers are read now (nothing lags a rebuild).
         with_factor!(self, both => both.flush_rhs());

@@ -176,6 +176,11 @@ impl<const K: usize, const L: usize> Rows<K, L> {
     fn rhs(&self, e: usize) -> [f64; K] {
         std::array::from_fn(|q| self.sqrt_w[e][lane::<L>(q)] * self.y[e][q])
     }
+
+    /// How edge e's right-hand side moves when its measurement goes from `old` to `new`.
+    fn shift(&self, e: usize, old: [f64; K], new: [f64; K]) -> [f64; K] {
+        std::array::from_fn(|q| self.sqrt_w[e][lane::<L>(q)] * (new[q] - old[q]))
+    }
 }
 
 /// The incrementally factored Laplacian system (see the module docs).
@@ -392,8 +397,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         if self.deferred {
             return;
         }
-        let s = self.rows.sqrt_w[e];
-        let shift: [f64; K] = std::array::from_fn(|q| s[lane::<L>(q)] * (y[q] - old[q]));
+        let shift = self.rows.shift(e, old, y);
         if self.last_edge == Some(e) && self.factor.shift_last_row(shift) {
             // The last row's difference moves by gain·Δy: counted net of what the row moved.
             let (signed, gain) = self.last_moved;
@@ -484,10 +488,11 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     /// [`Self::all`] for the right-hand sides `columns`, in one back-substitution.
     pub fn all_columns<const M: usize>(&mut self, columns: [usize; M]) -> [Vec<f64>; M] {
         let mut xs = self.factor.solve_columns(columns);
+        let anchors: Vec<usize> = (0..self.len())
+            .map(|v| self.anchor[self.components.find(v)])
+            .collect();
         for x in &mut xs {
-            for v in 0..x.len() {
-                let r = self.components.find(v);
-                let a = self.anchor[r];
+            for (v, &a) in anchors.iter().enumerate() {
                 if a != v {
                     x[v] -= x[a];
                 }
@@ -525,12 +530,8 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     }
 
     /// Build the factor of the whole system at once, in a fill-reducing order with the newest
-    /// node last (as a renewal does, on this thread), and apply changes to it from now on. The
-    /// rows' measurements are first rewritten by `relinearise` (if given).
-    pub fn rebuild(&mut self, relinearise: Option<Relinearise<K>>) {
-        if let Some(job) = relinearise {
-            job(&mut self.rows.y);
-        }
+    /// node last (as a renewal does, on this thread), and apply changes to it from now on.
+    pub fn rebuild(&mut self) {
         let n = self.len();
         self.install(build(&self.rows, &self.prior, n, n.checked_sub(1)));
         self.nodes_at_renewal = n;
@@ -666,8 +667,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
                     let e = e as usize;
                     let old = *rows.y.get(e)?;
                     rows.y[e] = y;
-                    let s = rows.sqrt_w[e];
-                    let shift = std::array::from_fn(|q| s[lane::<L>(q)] * (y[q] - old[q]));
+                    let shift = rows.shift(e, old, y);
                     // The last edge's row is the last row added unless a prior's was removed
                     // since (which makes the gains stale).
                     if e + 1 != rows.ends.len() || !f.shift_last_row(shift) {
