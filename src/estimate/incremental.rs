@@ -1005,7 +1005,8 @@ impl<const K: usize> SqrtInfo<K> {
 
 impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     /// The factor of the rows given, in the variable order `order`, computed at once: the
-    /// normal equations `AᵀA` in that order factored by a sparse Cholesky (faer, simplicial),
+    /// normal equations `AᵀA` in that order factored by a sparse Cholesky (faer's, simplicial
+    /// or, where its flops per nonzero make dense blocks pay, supernodal: [`supernodal_pays`]),
     /// `R = Lᵀ`, then d by one forward solve. Far cheaper than rotating every row in; `None`
     /// when the Cholesky meets a non-positive pivot (extreme weights: the caller rotates the
     /// rows in instead, which is the better-conditioned QR).
@@ -1013,10 +1014,18 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         order: &[usize],
         rows: impl Iterator<Item = ([(usize, C); N], [f64; K])> + Clone,
     ) -> Option<Self> {
+        Self::factored_by(order, rows, Cholesky::Auto)
+    }
+
+    /// [`Self::factored`] by the given kind of Cholesky factorization.
+    fn factored_by<const N: usize, C: Lanes<L>>(
+        order: &[usize],
+        rows: impl Iterator<Item = ([(usize, C); N], [f64; K])> + Clone,
+        cholesky: Cholesky,
+    ) -> Option<Self> {
         use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
-        use faer::linalg::cholesky::llt::factor::LltRegularization;
-        use faer::sparse::linalg::cholesky::simplicial;
-        use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
+        use faer::sparse::SymbolicSparseColMatRef;
+        use faer::sparse::linalg::cholesky::{simplicial, supernodal};
         let mut f = Self::new();
         for &v in order {
             f.push_variable(v);
@@ -1083,37 +1092,128 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
             simplicial::prefactorize_symbolic_cholesky_scratch::<usize>(n, nnz),
             simplicial::factorize_simplicial_symbolic_cholesky_scratch::<usize>(n),
             simplicial::factorize_simplicial_numeric_llt_scratch::<usize, f64>(n),
+            supernodal::factorize_supernodal_symbolic_cholesky_scratch::<usize>(n),
         ]))
         .ok()?;
         let stack = MemStack::new(&mut mem);
         let (mut etree, mut counts) = (vec![0isize; n], vec![0usize; n]);
         let tree =
             simplicial::prefactorize_symbolic_cholesky(&mut etree, &mut counts, pattern, stack);
-        let symbolic =
-            simplicial::factorize_simplicial_symbolic_cholesky(pattern, tree, &counts, stack)
-                .ok()?;
-        // One numeric factorization per lane, on the one symbolic structure.
+        let normal = NormalEquations {
+            pattern,
+            values: &a_values,
+            tree,
+            counts: &counts,
+        };
+        let supernodal = match cholesky {
+            Cholesky::Auto => supernodal_pays(&counts),
+            Cholesky::Simplicial => false,
+            Cholesky::Supernodal => true,
+        };
+        if supernodal {
+            f.rows_supernodal(normal, stack)?;
+        } else {
+            f.rows_simplicial(normal, stack)?;
+        }
+        if f.diag
+            .iter()
+            .flatten()
+            .any(|&r| !(r > 0.0 && r.is_finite()))
+        {
+            return None;
+        }
+        f.reset_rhs(rows);
+        Some(f)
+    }
+}
+
+/// Which sparse Cholesky factorization [`SqrtInfo::factored`] computes R with (the two
+/// named ones forced by tests only).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(not(test), allow(dead_code))]
+enum Cholesky {
+    /// Supernodal when [`supernodal_pays`], simplicial otherwise.
+    Auto,
+    /// Column by column (faer's simplicial `LLᵀ`).
+    Simplicial,
+    /// By dense blocks of columns with a common pattern (faer's supernodal `LLᵀ`).
+    Supernodal,
+}
+
+/// The normal equations `AᵀA` of [`SqrtInfo::factored`]: their upper triangle by columns (every
+/// diagonal present, rows ascending) and its values, one slice per lane; and their elimination
+/// tree and the column counts of L (diagonal included).
+#[derive(Clone, Copy)]
+struct NormalEquations<'a, const L: usize> {
+    pattern: faer::sparse::SymbolicSparseColMatRef<'a, usize>,
+    values: &'a [Vec<f64>; L],
+    tree: faer::sparse::linalg::cholesky::simplicial::EliminationTreeRef<'a, usize>,
+    counts: &'a [usize],
+}
+
+/// Flops of the factorization per nonzero of L beyond which [`SqrtInfo::factored`] factors
+/// supernodally: faer's own rule for choosing (its high-level symbolic Cholesky with the
+/// automatic threshold), the flops counted from the column counts as faer counts them. The
+/// dense blocks pay where the top of the elimination tree is dense: on the 100 000-pose
+/// simulated world the numeric factorization of a renewal at 97 000–99 000 variables (3.7–3.9
+/// M nonzeros of L, about 125 flops per nonzero) took 106–118 ms supernodally against 415–600
+/// ms column by column, and the symbolic one 17–18 ms against 49–59 ms; on city10000 (15
+/// flops per nonzero) 3.4 ms against 2.3–2.6 ms: column by column is cheaper there. M3500's
+/// renewals have about 8, the simulated world passes 40 at about 45 000 poses (a build on the
+/// renewal's thread, timed inside it, 2026-12-05).
+const SUPERNODAL_FLOPS_PER_NONZERO: f64 = 40.0;
+
+/// Whether a factor with these column counts (of L, diagonal included) is factored
+/// supernodally ([`SUPERNODAL_FLOPS_PER_NONZERO`]).
+fn supernodal_pays(counts: &[usize]) -> bool {
+    let (mut flops, mut nnz) = (0.0, 0.0);
+    for &c in counts {
+        let c = c as f64;
+        flops += c + c * (c + 1.0) / 2.0;
+        nnz += c;
+    }
+    flops > SUPERNODAL_FLOPS_PER_NONZERO * nnz
+}
+
+impl<const K: usize, const L: usize> SqrtInfo<K, L> {
+    /// R's rows and diagonal from a simplicial Cholesky of the normal equations (one symbolic
+    /// factorization, a numeric one per lane): column j of L is row j of R. None when a
+    /// factorization fails.
+    fn rows_simplicial(
+        &mut self,
+        normal: NormalEquations<'_, L>,
+        stack: &mut faer::dyn_stack::MemStack,
+    ) -> Option<()> {
+        use faer::linalg::cholesky::llt::factor::LltRegularization;
+        use faer::sparse::SparseColMatRef;
+        use faer::sparse::linalg::cholesky::simplicial;
+        let symbolic = simplicial::factorize_simplicial_symbolic_cholesky(
+            normal.pattern,
+            normal.tree,
+            normal.counts,
+            stack,
+        )
+        .ok()?;
         let mut values: [Vec<f64>; L] = std::array::from_fn(|_| vec![0.0; symbolic.len_val()]);
-        for (values, a_values) in values.iter_mut().zip(&a_values) {
+        for (values, a_values) in values.iter_mut().zip(normal.values) {
             simplicial::factorize_simplicial_numeric_llt(
                 values,
-                SparseColMatRef::new(pattern, a_values),
+                SparseColMatRef::new(normal.pattern, a_values),
                 LltRegularization::default(),
                 &symbolic,
                 &mut *stack,
             )
             .ok()?;
         }
-        // Column j of L is row j of R: its diagonal, then the positions below it.
         let (col_ptr, row_idx) = (symbolic.col_ptr(), symbolic.row_idx());
         let mut entries: Vec<(u32, [f64; L])> = Vec::new();
-        for j in 0..n {
+        for j in 0..self.len() {
             entries.clear();
             for t in col_ptr[j]..col_ptr[j + 1] {
                 let i = row_idx[t];
                 let v: [f64; L] = std::array::from_fn(|l| values[l][t]);
                 if i == j {
-                    f.diag[j] = v;
+                    self.diag[j] = v;
                 } else if !is_zero(&v) {
                     entries.push((i as u32, v));
                 }
@@ -1126,18 +1226,112 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
             for &(p, v) in &entries {
                 row.push(p, v);
             }
-            f.nnz += row.len();
-            f.rows[j] = row;
+            self.nnz += row.len();
+            self.rows[j] = row;
         }
-        if f.diag
-            .iter()
-            .flatten()
-            .any(|&r| !(r > 0.0 && r.is_finite()))
-        {
-            return None;
+        Some(())
+    }
+
+    /// [`Self::rows_simplicial`] by a supernodal Cholesky: supernode s holds columns
+    /// `begin..end` of L as one dense column-major block, rows `begin..end` then its pattern
+    /// below them; column j of the block (its entries below the diagonal that are not zero:
+    /// the supernodes are relaxed, padded with explicit zeros) is row j of R.
+    fn rows_supernodal(
+        &mut self,
+        normal: NormalEquations<'_, L>,
+        stack: &mut faer::dyn_stack::MemStack,
+    ) -> Option<()> {
+        use faer::dyn_stack::{MemBuffer, MemStack};
+        use faer::linalg::cholesky::llt::factor::LltRegularization;
+        use faer::sparse::linalg::SymbolicSupernodalParams;
+        use faer::sparse::linalg::cholesky::supernodal;
+        use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
+        let symbolic = supernodal::factorize_supernodal_symbolic_cholesky(
+            normal.pattern,
+            normal.tree,
+            normal.counts,
+            stack,
+            SymbolicSupernodalParams::default(),
+        )
+        .ok()?;
+        // The numeric factorization reads the lower triangle: the upper one transposed (each
+        // column's rows ascending, its diagonal first).
+        let n = self.len();
+        let (col_ptr, row_idx) = (normal.pattern.col_ptr(), normal.pattern.row_idx());
+        let nnz = row_idx.len();
+        let mut lower_ptr = vec![0usize; n + 1];
+        for &r in row_idx {
+            lower_ptr[r + 1] += 1;
         }
-        f.reset_rhs(rows);
-        Some(f)
+        for c in 0..n {
+            lower_ptr[c + 1] += lower_ptr[c];
+        }
+        let mut next = lower_ptr[..n].to_vec();
+        let mut lower_idx = vec![0usize; nnz];
+        let mut lower_values: [Vec<f64>; L] = std::array::from_fn(|_| vec![0.0; nnz]);
+        for c in 0..n {
+            for t in col_ptr[c]..col_ptr[c + 1] {
+                let r = row_idx[t];
+                let o = next[r];
+                lower_idx[o] = c;
+                for (lower, upper) in lower_values.iter_mut().zip(normal.values) {
+                    lower[o] = upper[t];
+                }
+                next[r] += 1;
+            }
+        }
+        let lower = SymbolicSparseColMatRef::new_checked(n, n, &lower_ptr, None, &lower_idx);
+        let par = faer::Par::Seq;
+        let mut mem = MemBuffer::try_new(supernodal::factorize_supernodal_numeric_llt_scratch::<
+            usize,
+            f64,
+        >(&symbolic, par, Default::default()))
+        .ok()?;
+        let stack = MemStack::new(&mut mem);
+        let mut values: [Vec<f64>; L] = std::array::from_fn(|_| vec![0.0; symbolic.len_val()]);
+        for (values, lower_values) in values.iter_mut().zip(&lower_values) {
+            supernodal::factorize_supernodal_numeric_llt(
+                values,
+                SparseColMatRef::new(lower, lower_values),
+                LltRegularization::default(),
+                &symbolic,
+                par,
+                stack,
+                Default::default(),
+            )
+            .ok()?;
+        }
+        let (begin, end, at) = (
+            symbolic.supernode_begin(),
+            symbolic.supernode_end(),
+            symbolic.col_ptr_for_val(),
+        );
+        for s in 0..symbolic.n_supernodes() {
+            let below = symbolic.supernode(s).pattern();
+            let (first, width) = (begin[s], end[s] - begin[s]);
+            let height = width + below.len();
+            for c in 0..width {
+                let column = at[s] + c * height;
+                let value =
+                    |r: usize| -> [f64; L] { std::array::from_fn(|l| values[l][column + r]) };
+                let j = first + c;
+                self.diag[j] = value(c);
+                let mut row = Row {
+                    pos: Vec::with_capacity(height - c - 1),
+                    val: Vec::with_capacity(height - c - 1),
+                };
+                let positions = (first + c + 1..first + width).chain(below.iter().copied());
+                for (r, p) in (c + 1..height).zip(positions) {
+                    let v = value(r);
+                    if !is_zero(&v) {
+                        row.push(p as u32, v);
+                    }
+                }
+                self.nnz += row.len();
+                self.rows[j] = row;
+            }
+        }
+        Some(())
     }
 }
 
@@ -1398,6 +1592,86 @@ mod tests {
             .wrapping_mul(6364136223846793005)
             .wrapping_add(1442695040888963407);
         ((*state >> 11) as f64) / ((1u64 << 53) as f64)
+    }
+
+    /// The supernodal and the simplicial Cholesky give the same factor: the same pattern (the
+    /// supernodes' padding dropped), the same values and right-hand sides to rounding, on a
+    /// grid of two lanes in a fill-reducing order whose top is dense (a 30 × 30 grid's
+    /// separators); and after it both take a row alike.
+    #[test]
+    fn supernodal_and_simplicial_factors_agree() {
+        let side = 30;
+        let n = side * side;
+        let mut state = 7u64;
+        let mut edges = Vec::new();
+        for i in 0..side {
+            for j in 0..side {
+                let v = i * side + j;
+                if j + 1 < side {
+                    edges.push((v, v + 1));
+                }
+                if i + 1 < side {
+                    edges.push((v, v + side));
+                }
+            }
+        }
+        type Rows = Vec<([(usize, [f64; 2]); 2], [f64; 3])>;
+        let mut rows: Rows = vec![([(0, [1.0, 2.0]), (0, [0.0; 2])], [0.0; 3])];
+        for &(a, b) in &edges {
+            let w = [0.5 + lcg(&mut state), 0.5 + 3.0 * lcg(&mut state)];
+            let y = [lcg(&mut state), lcg(&mut state), lcg(&mut state)];
+            rows.push(([(a, w.map(|w| -w)), (b, w)], y.map(|y| y * w[0])));
+        }
+        let order = fill_reducing_order(n, &edges, &[n - 1]);
+        let by = |cholesky| {
+            SqrtInfo::<3, 2>::factored_by(&order, rows.iter().copied(), cholesky).unwrap()
+        };
+        let (mut simplicial, mut supernodal) = (by(Cholesky::Simplicial), by(Cholesky::Supernodal));
+        let close = |a: [f64; 2], b: [f64; 2]| {
+            (0..2).all(|l| (a[l] - b[l]).abs() <= 1e-12 * (1.0 + a[l].abs()))
+        };
+        assert_eq!(simplicial.nnz, supernodal.nnz);
+        assert!(
+            simplicial.nnz > 10 * n,
+            "a dense enough top: {}",
+            simplicial.nnz
+        );
+        for k in 0..n {
+            assert_eq!(simplicial.rows[k].pos, supernodal.rows[k].pos, "row {k}");
+            assert!(close(simplicial.diag[k], supernodal.diag[k]), "row {k}");
+            for (a, b) in simplicial.rows[k].val.iter().zip(&supernodal.rows[k].val) {
+                assert!(close(*a, *b), "row {k}");
+            }
+            let (a, b) = (simplicial.d[k], supernodal.d[k]);
+            assert!((0..3).all(|q| (a[q] - b[q]).abs() <= 1e-10 * (1.0 + a[q].abs())));
+        }
+        let row = [(3, [1.0, 0.5]), (n - 2, [-1.0, -0.5])];
+        let (a, b) = (
+            simplicial.add_row(&row, [0.3; 3]),
+            supernodal.add_row(&row, [0.3; 3]),
+        );
+        for q in 0..3 {
+            assert!((a.residual[q] - b.residual[q]).abs() < 1e-10);
+        }
+        let (x, y) = (
+            simplicial.solve_columns([0, 1, 2]),
+            supernodal.solve_columns([0, 1, 2]),
+        );
+        for q in 0..3 {
+            for v in 0..n {
+                assert!((x[q][v] - y[q][v]).abs() < 1e-9, "{q} {v}");
+            }
+        }
+    }
+
+    /// The choice of factorization follows the flops per nonzero of L: a chain's factor
+    /// (two per column) is simplicial, a dense one of 200 columns supernodal (about 68 flops per
+    /// nonzero; 100 columns make 35).
+    #[test]
+    fn supernodal_pays_where_the_factor_is_dense() {
+        assert!(!supernodal_pays(&[2; 1000]));
+        let dense: Vec<usize> = (1..=200).rev().collect();
+        assert!(supernodal_pays(&dense));
     }
 
     /// A factor of two lanes (the same rows, each lane with its own coefficients) is two
