@@ -35,12 +35,13 @@
 //!
 //! **Renewing the order without a stall.** New nodes are appended at the end, so revisits of
 //! old places make R fill in, and the nodes appended since the last renewal form a chain that
-//! every loop closure to an older node walks. When R's nonzeros per row have grown by half, or
-//! an eighth of the nodes were appended, since the last renewal, a new factor is built
+//! every loop closure to an older node walks. When R's nonzeros per row have grown by half (by
+//! a fifth from 20 000 variables: [`FILL_RATIO_LARGE`]), or an eighth of the nodes were
+//! appended, since the last renewal, a new factor is built
 //! **beside** the live one on another thread: approximate minimum-degree order with the
 //! newest node last (the graph as it was at that step), the normal equations factored at once
-//! by a sparse Cholesky ([`SqrtInfo::factored`]; rows rotated in when extreme weights defeat
-//! it). Every later change (node, row, removed prior, moved right-hand side) is sent to the
+//! by a sparse Cholesky ([`SqrtInfo::factored`], supernodal on large factors; rows rotated in
+//! when extreme weights defeat it). Every later change (node, row, removed prior, moved right-hand side) is sent to the
 //! builder, which applies it to its factor as it comes, so the live factor's steps replay
 //! nothing ([`super::renewal`]). The new factor is collected once the live factor has done
 //! [`work_per_nonzero`] units of its own work ([`SqrtInfo::take_work`]; 96 up to M3500's
@@ -54,8 +55,34 @@ use super::renewal::{Beside, Due, Worker};
 use crate::estimate::incremental::{Lanes, Leftover, SqrtInfo, fill_reducing_order, lane};
 use crate::graph::UnionFind;
 
-/// Renew the order when R's nonzeros per row exceed this multiple of the last renewal's.
+/// Renew the order when R's nonzeros per row exceed this multiple of the last renewal's
+/// ([`fill_ratio`]: below [`LARGE_FACTOR`] variables).
 const FILL_RATIO: f64 = 1.5;
+/// [`FILL_RATIO`] from [`LARGE_FACTOR`] variables on: a renewal starts sooner after the last
+/// one was collected. On large worlds the renewals' builder sat idle for most of the time
+/// between them (on the 100 000-pose world, collected 100–200 nodes after they started, then
+/// about 900 nodes before the next began), while the loop closures' work grew with the age of
+/// the order (mean 187 k entries in the first 100 steps after a collection, 364 k after 800,
+/// 794 k beyond 900; the slowest 1 % of the steps, 1 619 of 1 685, all beyond 900). Measured
+/// (`so2lin stream FILE --json`, robot order, the newest pose read after every step, the
+/// renewals supernodal where they pay, alternating runs, 2026-12-05; at 1.2 against 1.5): the
+/// 100 000-pose world p99 4.5–5.5 against 7.0–7.8 ms, worst step 27 against 42 ms, 82–99
+/// against 112–132 s of steps (two runs each); a 30 000-pose world p99 1.68 against 1.87 ms,
+/// 7.1 against 7.9 s (six runs); but a 10 000-pose world 578 against 538 µs (eight), city10000
+/// 239 against 218 µs (ten) and M3500 120 against 126 µs (twelve): within their noise, so the
+/// smaller factors keep 1.5.
+const FILL_RATIO_LARGE: f64 = 1.2;
+/// Variables from which [`FILL_RATIO_LARGE`] applies.
+const LARGE_FACTOR: usize = 20_000;
+
+/// The fill growth per row that starts a renewal of a factor of `n` variables.
+fn fill_ratio(n: usize) -> f64 {
+    if n >= LARGE_FACTOR {
+        FILL_RATIO_LARGE
+    } else {
+        FILL_RATIO
+    }
+}
 /// Renew when more than `1/APPENDED_FRACTION` of the nodes were appended since the last
 /// renewal.
 const APPENDED_FRACTION: usize = 8;
@@ -619,10 +646,10 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         }
         // Nodes appended since the last renewal form a chain at the end of the order that
         // every loop closure to an older node walks: renew when it is an eighth of the graph,
-        // or when the fill per row has grown by half.
+        // or when the fill per row has grown by half (a fifth on large factors).
         let per_row = self.factor.nnz() as f64 / n as f64;
         let appended = n - self.nodes_at_renewal;
-        if per_row <= FILL_RATIO * self.fill_after_renewal.max(1.0)
+        if per_row <= fill_ratio(n) * self.fill_after_renewal.max(1.0)
             && appended <= MIN_VARIABLES.max(n / APPENDED_FRACTION)
         {
             return None;
