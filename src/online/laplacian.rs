@@ -33,23 +33,23 @@
 //! scaled (how a factor shared by headings and positions takes them in two lanes when their
 //! weights stop being proportional).
 //!
-//! **Renewing the order without a stall.** New nodes are appended at the end, so revisits of
-//! old places make R fill in, and the nodes appended since the last renewal form a chain that
-//! every loop closure to an older node walks. When R's nonzeros per row have grown by half (by
-//! a fifth from 20 000 variables: [`FILL_RATIO_LARGE`]), or an eighth of the nodes were
-//! appended, since the last renewal, a new factor is built
-//! **beside** the live one on another thread: approximate minimum-degree order with the
-//! newest node last (the graph as it was at that step), the normal equations factored at once
-//! by a sparse Cholesky ([`SqrtInfo::factored`], supernodal on large factors; rows rotated in
-//! when extreme weights defeat it). Every later change (node, row, removed prior, moved right-hand side) is sent to the
-//! builder, which applies it to its factor as it comes, so the live factor's steps replay
-//! nothing ([`super::renewal`]). The new factor is collected once the live factor has done
-//! [`work_per_nonzero`] units of its own work ([`SqrtInfo::take_work`]; 96 up to M3500's
-//! 3 500 nodes, growing to 144 at 5 500) per nonzero the renewed factor is expected to have
-//! (the last renewal's fill per row times the variables), and at least [`MIN_DELAY`] steps
-//! after the start — counts, not clocks, so the run stays deterministic whatever the threads'
-//! timing; the step waits only if the builder is still busy then — and swapped in. Every
-//! answer in between comes from the live factor: exact at every step.
+//! **Renewing the order without a stall.** New nodes are appended at the end, so revisits of old
+//! places make R fill in, and the nodes appended since the last renewal form a chain that every
+//! loop closure to an older node walks. When R's nonzeros per row have grown by half (by a fifth
+//! from 20 000 variables: [`FILL_RATIO_LARGE`]), or an eighth of the nodes were appended, since the
+//! last renewal, a new factor is built **beside** the live one on another thread: approximate
+//! minimum-degree order with the newest node last (the graph as it was at that step), the normal
+//! equations factored at once by a sparse Cholesky ([`SqrtInfo::factored`], supernodal on large
+//! factors; rows rotated in when extreme weights defeat it). Every later change (node, row, removed
+//! prior, moved right-hand side) is sent to the builder, which applies it to its factor as it
+//! comes, so the live factor's steps replay nothing ([`super::renewal`]). The new factor is
+//! collected once the live factor has done [`work_per_nonzero`] units of its own work
+//! ([`SqrtInfo::take_work`]; 96 up to M3500's 3 500 nodes, growing to 144 at 5 500, 120 from
+//! 20 000) per nonzero the renewed factor is expected to have (the last renewal's fill per row times
+//! the variables), and at least [`MIN_DELAY`] steps after the start — counts, not clocks, so the
+//! run stays deterministic whatever the threads' timing; the step waits only if the builder is
+//! still busy then — and swapped in. Every answer in between comes from the live factor: exact at
+//! every step.
 
 use super::renewal::{Beside, Due, Worker};
 use crate::estimate::incremental::{Lanes, Leftover, SqrtInfo, fill_reducing_order, lane};
@@ -72,8 +72,21 @@ const FILL_RATIO: f64 = 1.5;
 /// 239 against 218 µs (ten) and M3500 120 against 126 µs (twelve): within their noise, so the
 /// smaller factors keep 1.5.
 const FILL_RATIO_LARGE: f64 = 1.2;
-/// Variables from which [`FILL_RATIO_LARGE`] applies.
+/// Variables from which [`FILL_RATIO_LARGE`] and [`LARGE_SIZE`] apply.
 const LARGE_FACTOR: usize = 20_000;
+
+/// [`work_per_nonzero`]'s size factor from [`LARGE_FACTOR`] variables (1.5 below, from 5 500):
+/// large factors' renewals are collected sooner. Their builds cost less per nonzero than the
+/// rule's `^0.8` assumed once the largest are supernodal ([`SqrtInfo::factored`]), and with
+/// renewals starting sooner ([`FILL_RATIO_LARGE`]) each build has fewer changes to catch up.
+/// Measured (`so2lin stream FILE --json`, robot order, the newest pose read after every step,
+/// alternating runs, 2026-12-05; at 1.25 against 1.5): the 100 000-pose world p99 4.0–4.7
+/// against 4.5–5.4 ms (medians 4.4 and 4.9), worst step 25–28 against 34–39 ms, 71–83 against
+/// 80–92 s of steps, 4–17 waits against 4–21 (four runs against five); a 30 000-pose world
+/// (simplicial builds) p99 1.45 against 1.60 ms, 6.2 against 6.6 s, 4.5 waits against 9.5 (six
+/// runs each). At 1.0 the 100 000-pose world's builder fell behind: 41–44 waits, a worst step
+/// of 68 ms in one of two runs (p99 3.9–4.0 ms).
+const LARGE_SIZE: f64 = 1.25;
 
 /// The fill growth per row that starts a renewal of a factor of `n` variables.
 fn fill_ratio(n: usize) -> f64 {
@@ -116,9 +129,13 @@ const WORK_PER_NONZERO: f64 = 96.0;
 /// size and below) and 1.5 (from about 5 500 variables). A build's cost per nonzero grows with
 /// the factor (its order's and the caches'), the live factor's work per unit of time falls.
 /// (With `^0.4`, 1.5 from 10 000 variables: city10000 waited at 17–19 collections against 10
-/// with `^0.8`, four alternating runs.)
+/// with `^0.8`, four alternating runs.) From [`LARGE_FACTOR`] variables, [`LARGE_SIZE`].
 fn work_per_nonzero(n: usize, lanes: usize) -> f64 {
-    let size = (n as f64 / 3_500.0).powf(0.8).clamp(1.0, 1.5);
+    let size = if n >= LARGE_FACTOR {
+        LARGE_SIZE
+    } else {
+        (n as f64 / 3_500.0).powf(0.8).clamp(1.0, 1.5)
+    };
     WORK_PER_NONZERO * size * (1.0 + size * EXTRA_LANE_BUILD * lanes.saturating_sub(1) as f64)
 }
 
