@@ -45,9 +45,9 @@
 //! comes, so the live factor's steps replay nothing ([`super::renewal`]). The new factor is
 //! collected once the live factor has done [`work_per_nonzero`] units of its own work
 //! ([`SqrtInfo::take_work`]; 96 up to M3500's 3 500 nodes, growing to 144 at 5 500, 120 from
-//! 20 000) per nonzero the renewed factor is expected to have (the last renewal's fill per row times
-//! the variables), and at least [`MIN_DELAY`] steps after the start — counts, not clocks, so the
-//! run stays deterministic whatever the threads' timing; the step waits only if the builder is
+//! 20 000) per nonzero the renewed factor is expected to have (the last renewal's fill per row
+//! times the variables), and at least [`MIN_DELAY`] steps after the start — counts, not clocks, so
+//! the run stays deterministic whatever the threads' timing; the step waits only if the builder is
 //! still busy then — and swapped in. Every answer in between comes from the live factor: exact at
 //! every step.
 
@@ -58,19 +58,18 @@ use crate::graph::UnionFind;
 /// Renew the order when R's nonzeros per row exceed this multiple of the last renewal's
 /// ([`fill_ratio`]: below [`LARGE_FACTOR`] variables).
 const FILL_RATIO: f64 = 1.5;
-/// [`FILL_RATIO`] from [`LARGE_FACTOR`] variables on: a renewal starts sooner after the last
-/// one was collected. On large worlds the renewals' builder sat idle for most of the time
-/// between them (on the 100 000-pose world, collected 100–200 nodes after they started, then
-/// about 900 nodes before the next began), while the loop closures' work grew with the age of
-/// the order (mean 187 k entries in the first 100 steps after a collection, 364 k after 800,
-/// 794 k beyond 900; the slowest 1 % of the steps, 1 619 of 1 685, all beyond 900). Measured
-/// (`so2lin stream FILE --json`, robot order, the newest pose read after every step, the
-/// renewals supernodal where they pay, alternating runs, 2026-12-05; at 1.2 against 1.5): the
-/// 100 000-pose world p99 4.5–5.5 against 7.0–7.8 ms, worst step 27 against 42 ms, 82–99
-/// against 112–132 s of steps (two runs each); a 30 000-pose world p99 1.68 against 1.87 ms,
-/// 7.1 against 7.9 s (six runs); but a 10 000-pose world 578 against 538 µs (eight), city10000
-/// 239 against 218 µs (ten) and M3500 120 against 126 µs (twelve): within their noise, so the
-/// smaller factors keep 1.5.
+/// [`FILL_RATIO`] from [`LARGE_FACTOR`] variables on: a renewal starts sooner after the last one
+/// was collected. On large worlds the renewals' builder sat idle for most of the time between them
+/// (on the 100 000-pose world, collected 100–200 nodes after they started, then about 900 nodes
+/// before the next began), while the loop closures' work grew with the age of the order (mean 187 k
+/// entries in the first 100 steps after a collection, 364 k after 800, 794 k beyond 900; the
+/// slowest 1 % of the steps, 1 619 of 1 685, all beyond 900). Measured (`so2lin stream FILE
+/// --json`, robot order, the newest pose read after every step, the renewals supernodal where they
+/// pay, alternating runs, 2026-12-05; at 1.2 against 1.5): the 100 000-pose world p99 4.5–5.5
+/// against 7.0–7.8 ms, worst step 27–28 against 40–54 ms, 82–99 against 112–136 s of steps (two
+/// runs against four); a 30 000-pose world p99 1.68 against 1.87 ms, 7.1 against 7.9 s (six runs);
+/// but a 10 000-pose world 578 against 538 µs (eight), city10000 239 against 218 µs (ten) and
+/// M3500 120 against 126 µs (twelve): within their noise, so the smaller factors keep 1.5.
 const FILL_RATIO_LARGE: f64 = 1.2;
 /// Variables from which [`FILL_RATIO_LARGE`] and [`LARGE_SIZE`] apply.
 const LARGE_FACTOR: usize = 20_000;
@@ -96,6 +95,7 @@ fn fill_ratio(n: usize) -> f64 {
         FILL_RATIO
     }
 }
+
 /// Renew when more than `1/APPENDED_FRACTION` of the nodes were appended since the last
 /// renewal.
 const APPENDED_FRACTION: usize = 8;

@@ -171,7 +171,7 @@ struct NormalEquations<'a, const L: usize> {
 /// automatic threshold), the flops counted from the column counts as faer counts them. The
 /// dense blocks pay where the top of the elimination tree is dense: on the 100 000-pose
 /// simulated world the numeric factorization of a renewal at 97 000–99 000 variables (3.7–3.9
-/// M nonzeros of L, about 125 flops per nonzero) took 106–118 ms supernodally against 415–600
+/// M nonzeros of L, 127 flops per nonzero at 98 000) took 106–118 ms supernodally against 415–600
 /// ms column by column, and the symbolic one 17–18 ms against 49–59 ms; on city10000 (15
 /// flops per nonzero) 3.4 ms against 2.3–2.6 ms: column by column is cheaper there. M3500's
 /// renewals have about 8, the simulated world passes 40 at about 45 000 poses (a build on the
@@ -342,6 +342,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
                         row.push(p as u32, v);
                     }
                 }
+                debug_assert!(row.pos.windows(2).all(|p| p[0] < p[1]), "row {j} unsorted");
                 self.nnz += row.len();
                 self.rows[j] = row;
             }
