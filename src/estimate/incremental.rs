@@ -40,8 +40,10 @@
 //! Written by hand because no maintained crate offers a sparse QR/Cholesky factor that can be
 //! grown, down-dated and read in place one row at a time (faer's sparse Cholesky refactors).
 
+mod dissection;
 mod factored;
 
+pub(crate) use dissection::{Dissection, dissected_order};
 pub(crate) use factored::{amd_order, fill_reducing_order};
 
 /// The off-diagonal entries of a row of R (or of a row being rotated in): positions
@@ -1175,18 +1177,7 @@ mod tests {
         let side = 30;
         let n = side * side;
         let mut state = 7u64;
-        let mut edges = Vec::new();
-        for i in 0..side {
-            for j in 0..side {
-                let v = i * side + j;
-                if j + 1 < side {
-                    edges.push((v, v + 1));
-                }
-                if i + 1 < side {
-                    edges.push((v, v + side));
-                }
-            }
-        }
+        let edges = dissection::grid(side, side);
         type Rows = Vec<([(usize, [f64; 2]); 2], [f64; 3])>;
         let mut rows: Rows = vec![([(0, [1.0, 2.0]), (0, [0.0; 2])], [0.0; 3])];
         for &(a, b) in &edges {

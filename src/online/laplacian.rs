@@ -38,7 +38,11 @@
 //! loop closure to an older node walks. When R's nonzeros per row have grown by half (by a fifth
 //! from 20 000 variables: [`FILL_RATIO_LARGE`]), or an eighth of the nodes were appended, since the
 //! last renewal, a new factor is built **beside** the live one on another thread: approximate
-//! minimum-degree order with the newest node last (the graph as it was at that step), the normal
+//! minimum-degree order with the newest node last (the graph as it was at that step; from 20 000
+//! variables four levels of nested dissection above it, [`dissected_order`], the separators
+//! computed afresh only once the graph has grown by a quarter and the nodes added since placed in
+//! the last renewal's tree otherwise, a renewal that splits afresh due [`SPLIT_BUILD`] times
+//! later), the normal
 //! equations factored at once by a sparse Cholesky ([`SqrtInfo::factored`], supernodal on large
 //! factors; rows rotated in when extreme weights defeat it). Every later change (node, row, removed
 //! prior, moved right-hand side) is sent to the builder, which applies it to its factor as it
@@ -52,8 +56,11 @@
 //! every step.
 
 use super::renewal::{Beside, Due, Worker};
-use crate::estimate::incremental::{Lanes, Leftover, SqrtInfo, fill_reducing_order, lane};
+use crate::estimate::incremental::{
+    Dissection, Lanes, Leftover, SqrtInfo, dissected_order, fill_reducing_order, lane,
+};
 use crate::graph::UnionFind;
+use std::sync::Arc;
 
 /// Renew the order when R's nonzeros per row exceed this multiple of the last renewal's
 /// ([`fill_ratio`]: below [`LARGE_FACTOR`] variables).
@@ -71,7 +78,9 @@ const FILL_RATIO: f64 = 1.5;
 /// but a 10 000-pose world 578 against 538 µs (eight), city10000 239 against 218 µs (ten) and
 /// M3500 120 against 126 µs (twelve): within their noise, so the smaller factors keep 1.5.
 const FILL_RATIO_LARGE: f64 = 1.2;
-/// Variables from which [`FILL_RATIO_LARGE`] and [`LARGE_SIZE`] apply.
+/// Variables from which [`FILL_RATIO_LARGE`] and [`LARGE_SIZE`] apply, and renewals order by
+/// nested dissection ([`Ordering::Dissected`]; on M3500 and city10000 it changed the estimate's
+/// work by 6 % or less and the builds took longer: measured 2026-12-05).
 const LARGE_FACTOR: usize = 20_000;
 
 /// [`work_per_nonzero`]'s size factor from [`LARGE_FACTOR`] variables (1.5 below, from 5 500):
@@ -86,6 +95,14 @@ const LARGE_FACTOR: usize = 20_000;
 /// runs each). At 1.0 the 100 000-pose world's builder fell behind: 41–44 waits, a worst step
 /// of 68 ms in one of two runs (p99 3.9–4.0 ms).
 const LARGE_SIZE: f64 = 1.25;
+
+/// How much later a renewal that splits its graph afresh ([`Ordering::Dissected`] without a
+/// tree) is due, as a factor on the work due: its separators cost about as much again as the
+/// rest of its build (about 200 ms against 100 ms for the minimum degree on the 100 000-pose
+/// world). Measured (`so2lin stream FILE --json`, robot order, the newest pose read after every
+/// step, two runs each alternating, 2026-12-05), on the 100 000-pose world: at 2 the worst step
+/// 41–42 ms with 12 waits, at 1 53–72 ms with 20–22 (p99 3.9 ms and 3.6–4.1 ms).
+const SPLIT_BUILD: f64 = 2.0;
 
 /// The fill growth per row that starts a renewal of a factor of `n` variables.
 fn fill_ratio(n: usize) -> f64 {
@@ -179,16 +196,28 @@ pub(crate) enum RenewalEvent {
     Collected,
 }
 
-/// What a renewal's builder returns: its factor and the right-hand sides it holds.
-type Built<const K: usize, const L: usize> = (SqrtInfo<K, L>, Vec<[f64; K]>);
+/// What a renewal's builder returns: its factor, the right-hand sides it holds, and the
+/// dissection its order came from (large factors).
+type Built<const K: usize, const L: usize> = (SqrtInfo<K, L>, Vec<[f64; K]>, Option<Dissection>);
+
+/// A renewal builder's state: its factor, its copy of the rows, its dissection.
+type Building<const K: usize, const L: usize> = (SqrtInfo<K, L>, Rows<K, L>, Option<Dissection>);
 
 /// A job that rewrites (some of) the measurements `y` of a renewal's snapshot, run by the
 /// builder.
 pub(crate) type Relinearise<const K: usize> = Box<dyn FnOnce(&mut [[f64; K]]) + Send>;
 
 /// A renewal of a Laplacian's factor in progress.
-type Renewal<const K: usize, const L: usize> =
-    Beside<(SqrtInfo<K, L>, Rows<K, L>), Built<K, L>, Msg<K, L>>;
+type Renewal<const K: usize, const L: usize> = Beside<Building<K, L>, Built<K, L>, Msg<K, L>>;
+
+/// How a build orders the variables.
+enum Ordering {
+    /// Approximate minimum degree ([`fill_reducing_order`]).
+    MinimumDegree,
+    /// Nested dissection ([`dissected_order`]): the variables placed in the given tree, or a
+    /// fresh split.
+    Dissected(Option<Arc<Dissection>>),
+}
 
 /// The data a factor is built from (a snapshot goes to the builder thread).
 #[derive(Clone)]
@@ -266,6 +295,11 @@ pub(crate) struct Laplacian<const K: usize, const L: usize = 1> {
     /// `x_b − x_a` (signed, per right-hand side) and its [`Leftover::gain`], so that a later
     /// shift of its right-hand side (the wrap a kept loop closure takes) counts net.
     last_moved: ([f64; K], [f64; L]),
+    /// The dissection of the last renewal ordered by one ([`Ordering::Dissected`]), in which
+    /// the next places the nodes added since.
+    dissection: Option<Arc<Dissection>>,
+    /// Renewals from this many variables order by nested dissection ([`LARGE_FACTOR`]).
+    dissect_from: usize,
     /// Renewals completed.
     pub renewals: usize,
     /// Steps that waited for a renewal's builder.
@@ -288,6 +322,8 @@ impl<const K: usize, const L: usize> Default for Laplacian<K, L> {
             worker: Worker::default(),
             steps: 0,
             last_edge: None,
+            dissection: None,
+            dissect_from: LARGE_FACTOR,
             deferred: false,
             stale_rhs: None,
             moved: [0.0; K],
@@ -372,7 +408,9 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
                 if self.factor.remove_row(&[(loser, p)], [0.0; K]).is_err() {
                     // Numerically the prior was the only information left: rebuild now.
                     self.renewal = None;
-                    self.factor = build(&self.rows, &self.prior, self.len(), None);
+                    let n = self.len();
+                    self.factor =
+                        build(&self.rows, &self.prior, n, None, Ordering::MinimumDegree).0;
                 }
             }
         }
@@ -577,7 +615,8 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     /// node last (as a renewal does, on this thread), and apply changes to it from now on.
     pub fn rebuild(&mut self) {
         let n = self.len();
-        self.install(build(&self.rows, &self.prior, n, n.checked_sub(1)));
+        let last = n.checked_sub(1);
+        self.install(build(&self.rows, &self.prior, n, last, Ordering::MinimumDegree).0);
         self.nodes_at_renewal = n;
         self.deferred = false;
     }
@@ -678,15 +717,26 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         // The builder's work grows with the size of the factor it builds (about the last
         // renewal's fill per row), not with the live factor's fill, which is what grows
         // without bound between renewals.
-        let expected_nnz = self.fill_after_renewal.max(2.0) * n as f64;
+        let mut expected_nnz = self.fill_after_renewal.max(2.0) * n as f64;
+        let ordering = if n >= self.dissect_from {
+            let tree = self.dissection.clone().filter(|t| !t.stale(n));
+            if tree.is_none() {
+                // Its separators are computed too.
+                expected_nnz *= SPLIT_BUILD;
+            }
+            Ordering::Dissected(tree)
+        } else {
+            Ordering::MinimumDegree
+        };
         let build = move || {
             if let Some(job) = relinearise {
                 job(&mut rows.y);
             }
-            Some((build(&rows, &prior, n, Some(newest)), rows))
+            let (f, tree) = build(&rows, &prior, n, Some(newest), ordering);
+            Some((f, rows, tree))
         };
         // Keep up with the live system until collected.
-        let apply = |(f, rows): &mut (SqrtInfo<K, L>, Rows<K, L>), msg: Msg<K, L>| {
+        let apply = |(f, rows, _): &mut Building<K, L>, msg: Msg<K, L>| {
             match msg {
                 Msg::Variable(v) => f.push_variable(v as usize),
                 Msg::Prior(p) => {
@@ -721,7 +771,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
             }
             Some(())
         };
-        let finish = |(f, rows): (SqrtInfo<K, L>, Rows<K, L>)| (f, rows.y);
+        let finish = |(f, rows, tree): Building<K, L>| (f, rows.y, tree);
         let due = Due {
             step: self.steps + MIN_DELAY,
             work: self.work + (expected_nnz * work_per_nonzero(n, L)) as u64,
@@ -746,11 +796,14 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         let Some((r, _)) = self.renewal.take() else {
             return false;
         };
-        let Some((fresh, y)) = r.collect(&mut self.waits) else {
+        let Some((fresh, y, tree)) = r.collect(&mut self.waits) else {
             return false;
         };
         if y.len() != self.rows.y.len() {
             return false;
+        }
+        if let Some(tree) = tree {
+            self.dissection = Some(Arc::new(tree));
         }
         self.rows.y = y;
         self.install(fresh);
@@ -786,6 +839,8 @@ impl<const K: usize> Laplacian<K> {
             stale_rhs: self.stale_rhs,
             moved: self.moved,
             last_moved: (self.last_moved.0, scale.map(|_| self.last_moved.1[0])),
+            dissection: self.dissection.clone(),
+            dissect_from: self.dissect_from,
             renewals: self.renewals,
             waits: self.waits,
             ..Laplacian::default()
@@ -805,20 +860,28 @@ fn reset_rhs<const K: usize, const L: usize>(
     );
 }
 
-/// A factor of the whole system in a fill-reducing order (`last` at the end).
+/// A factor of the whole system in a fill-reducing order (`last` at the end), and the
+/// dissection the order came from ([`Ordering::Dissected`]).
 fn build<const K: usize, const L: usize>(
     rows: &Rows<K, L>,
     prior: &[[f64; L]],
     n: usize,
     last: Option<usize>,
-) -> SqrtInfo<K, L> {
+    ordering: Ordering,
+) -> (SqrtInfo<K, L>, Option<Dissection>) {
     let ends: Vec<(usize, usize)> = rows
         .ends
         .iter()
         .map(|&(a, b)| (a as usize, b as usize))
         .collect();
     let last: Vec<usize> = last.into_iter().collect();
-    let order = fill_reducing_order(n, &ends, &last);
+    let (order, tree) = match ordering {
+        Ordering::MinimumDegree => (fill_reducing_order(n, &ends, &last), None),
+        Ordering::Dissected(tree) => {
+            let (order, tree) = dissected_order(n, &ends, &last, tree.as_deref());
+            (order, Some(tree))
+        }
+    };
     let priors = prior
         .iter()
         .enumerate()
@@ -827,7 +890,7 @@ fn build<const K: usize, const L: usize>(
         .map(|(v, &p)| ([(v, p), (v, [0.0; L])], [0.0; K]));
     let edges = (0..rows.ends.len()).map(|e| (rows.entries(e), rows.rhs(e)));
     if let Some(f) = SqrtInfo::factored(&order, priors.clone().chain(edges.clone())) {
-        return f;
+        return (f, tree);
     }
     // Extreme weights: rotate the rows in (QR, better conditioned than the normal equations).
     let mut f = SqrtInfo::new();
@@ -837,7 +900,7 @@ fn build<const K: usize, const L: usize>(
     for (entries, rhs) in priors.chain(edges) {
         f.add_row(&entries, rhs);
     }
-    f
+    (f, tree)
 }
 
 #[cfg(test)]
@@ -883,6 +946,96 @@ mod tests {
         let x = l.all(0);
         let last = x.len() - 1;
         assert!((x[last] - 0.1 * last as f64).abs() < 1e-9, "{}", x[last]);
+    }
+
+    /// Renewals from `dissect_from` variables order by nested dissection: the first splits the
+    /// graph, the later ones place the nodes added since in its tree until the graph has grown
+    /// by a quarter, then split it afresh. Every answer is that of renewals by minimum degree
+    /// alone (a boustrophedon over a 60 × 60 grid, each node closing a loop to its neighbour in
+    /// the row before, and every third to an older node further away).
+    #[test]
+    #[cfg(feature = "metis")]
+    fn dissected_renewals_answer_as_minimum_degree_ones() {
+        let w = 60;
+        let index = |r: usize, c: usize| r * w + if r.is_multiple_of(2) { c } else { w - 1 - c };
+        let mut dissected = Laplacian::<2> {
+            dissect_from: 400,
+            ..Laplacian::default()
+        };
+        let mut plain = Laplacian::<2> {
+            dissect_from: usize::MAX,
+            ..Laplacian::default()
+        };
+        let mut bases = Vec::new();
+        let (mut placed, mut dissected_renewals) = (0, 0);
+        let mut last: Option<Arc<Dissection>> = None;
+        for l in [&mut dissected, &mut plain] {
+            l.add_node();
+        }
+        for v in 1..w * w {
+            let (r, c) = (
+                v / w,
+                if (v / w).is_multiple_of(2) {
+                    v % w
+                } else {
+                    w - 1 - v % w
+                },
+            );
+            for l in [&mut dissected, &mut plain] {
+                l.add_node();
+                l.add_edge(v - 1, v, 4.0, [0.01 * (v % 7) as f64, 1.0]);
+                if r > 0 {
+                    let y = [0.05 * ((v * 13) % 5) as f64 - 0.1, 0.5];
+                    l.add_edge(index(r - 1, c), v, 2.0, y);
+                }
+                if v.is_multiple_of(3) {
+                    // A long loop closure now and then: work for the live factor.
+                    l.add_edge((v * 7919 + v * v) % (v - 1), v, 1.0, [0.02, -1.0]);
+                }
+            }
+            let renewals = dissected.renewals;
+            dissected.after_step(|_| None);
+            plain.after_step(|_| None);
+            if dissected.renewals > renewals
+                && let Some(tree) = dissected.dissection.as_ref()
+                && !last.as_ref().is_some_and(|l| Arc::ptr_eq(l, tree))
+            {
+                last = Some(Arc::clone(tree));
+                dissected_renewals += 1;
+                if bases.last() != Some(&tree.base()) {
+                    bases.push(tree.base());
+                } else {
+                    placed += 1;
+                }
+            }
+            let (a, b) = (dissected.value(v), plain.value(v));
+            assert!(
+                (a[0] - b[0]).abs() < 1e-9 && (a[1] - b[1]).abs() < 1e-9,
+                "node {v}: {a:?} against {b:?}"
+            );
+            if v.is_multiple_of(100) {
+                for q in 0..2 {
+                    let (a, b) = (dissected.all(q), plain.all(q));
+                    let gap = a
+                        .iter()
+                        .zip(&b)
+                        .map(|(x, y)| (x - y).abs())
+                        .fold(0.0, f64::max);
+                    assert!(gap < 1e-9, "node {v}, column {q}: {gap}");
+                }
+            }
+        }
+        eprintln!(
+            "{} renewals, {dissected_renewals} dissected, splits at {bases:?}, {placed} placed",
+            dissected.renewals
+        );
+        assert!(bases.len() >= 2, "split {} times", bases.len());
+        assert!(placed >= 1, "no renewal placed nodes in a kept tree");
+        assert!(
+            bases.windows(2).all(|b| b[1] as f64 > 1.25 * b[0] as f64),
+            "split before the graph grew by a quarter: {bases:?}"
+        );
+        assert!(plain.dissection.is_none());
     }
 
     /// A re-linearisation rewrites the rows at once and their right-hand sides at the end of

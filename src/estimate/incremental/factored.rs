@@ -358,73 +358,107 @@ pub(crate) fn fill_reducing_order(
     edges: &[(usize, usize)],
     last: &[usize],
 ) -> Vec<usize> {
-    let mut is_last = vec![false; n];
-    for &v in last {
-        is_last[v] = true;
-    }
-    let mut local = vec![usize::MAX; n];
-    let mut free = Vec::new();
-    for v in 0..n {
-        if !is_last[v] {
-            local[v] = free.len();
-            free.push(v);
-        }
-    }
-    let k = free.len();
-    // The pattern by columns (each with its diagonal, rows ascending, no repeats), counted
-    // into place rather than collected into a list per node.
-    let mut col_ptr = vec![0usize; k + 1];
-    let pairs = || {
-        edges.iter().filter_map(|&(a, b)| {
-            let (la, lb) = (local[a], local[b]);
-            (la != usize::MAX && lb != usize::MAX && la != lb).then_some((la, lb))
-        })
-    };
-    for (la, lb) in pairs() {
-        col_ptr[la + 1] += 1;
-        col_ptr[lb + 1] += 1;
-    }
-    for c in 0..k {
-        col_ptr[c + 1] += col_ptr[c] + 1;
-    }
-    let mut row_idx = vec![0usize; col_ptr[k]];
-    let mut next: Vec<usize> = col_ptr[..k].to_vec();
-    for c in 0..k {
-        row_idx[next[c]] = c;
-        next[c] += 1;
-    }
-    for (la, lb) in pairs() {
-        row_idx[next[la]] = lb;
-        next[la] += 1;
-        row_idx[next[lb]] = la;
-        next[lb] += 1;
-    }
-    // Sort each column and drop repeats (parallel edges), compacting in place.
-    let mut write = 0;
-    let mut start = 0;
-    for c in 0..k {
-        let end = col_ptr[c + 1];
-        row_idx[start..end].sort_unstable();
-        col_ptr[c] = write;
-        let mut last = usize::MAX;
-        for i in start..end {
-            let r = row_idx[i];
-            if r != last {
-                row_idx[write] = r;
-                write += 1;
-                last = r;
-            }
-        }
-        start = end;
-    }
-    col_ptr[k] = write;
-    row_idx.truncate(write);
-    let mut order: Vec<usize> = match amd_order(&col_ptr, &row_idx) {
-        Some(perm) => perm.iter().map(|&p| free[p]).collect(),
-        None => free.clone(),
+    let p = FreePattern::new(n, edges, last);
+    let mut order: Vec<usize> = match amd_order(&p.col_ptr, &p.row_idx) {
+        Some(perm) => perm.iter().map(|&i| p.free[i]).collect(),
+        None => p.free.clone(),
     };
     order.extend_from_slice(last);
     order
+}
+
+/// The graph of the variables `0..n` not in `last` (the free ones), numbered by their rank
+/// among them: a symmetric pattern by columns, each with its diagonal, rows ascending, no
+/// repeats (the form faer's minimum degree takes).
+pub(crate) struct FreePattern {
+    /// The free variables, ascending: local index → variable.
+    pub free: Vec<usize>,
+    /// Column starts (one past the last at the end).
+    pub col_ptr: Vec<usize>,
+    /// Rows of each column.
+    pub row_idx: Vec<usize>,
+}
+
+impl FreePattern {
+    /// The pattern of the graph on `0..n` with the given edges, the variables in `last` left
+    /// out.
+    pub fn new(n: usize, edges: &[(usize, usize)], last: &[usize]) -> Self {
+        let mut is_last = vec![false; n];
+        for &v in last {
+            is_last[v] = true;
+        }
+        let mut local = vec![usize::MAX; n];
+        let mut free = Vec::new();
+        for v in 0..n {
+            if !is_last[v] {
+                local[v] = free.len();
+                free.push(v);
+            }
+        }
+        let k = free.len();
+        // Counted into place rather than collected into a list per node.
+        let mut col_ptr = vec![0usize; k + 1];
+        let pairs = || {
+            edges.iter().filter_map(|&(a, b)| {
+                let (la, lb) = (local[a], local[b]);
+                (la != usize::MAX && lb != usize::MAX && la != lb).then_some((la, lb))
+            })
+        };
+        for (la, lb) in pairs() {
+            col_ptr[la + 1] += 1;
+            col_ptr[lb + 1] += 1;
+        }
+        for c in 0..k {
+            col_ptr[c + 1] += col_ptr[c] + 1;
+        }
+        let mut row_idx = vec![0usize; col_ptr[k]];
+        let mut next: Vec<usize> = col_ptr[..k].to_vec();
+        for c in 0..k {
+            row_idx[next[c]] = c;
+            next[c] += 1;
+        }
+        for (la, lb) in pairs() {
+            row_idx[next[la]] = lb;
+            next[la] += 1;
+            row_idx[next[lb]] = la;
+            next[lb] += 1;
+        }
+        // Sort each column and drop repeats (parallel edges), compacting in place.
+        let mut write = 0;
+        let mut start = 0;
+        for c in 0..k {
+            let end = col_ptr[c + 1];
+            row_idx[start..end].sort_unstable();
+            col_ptr[c] = write;
+            let mut last = usize::MAX;
+            for i in start..end {
+                let r = row_idx[i];
+                if r != last {
+                    row_idx[write] = r;
+                    write += 1;
+                    last = r;
+                }
+            }
+            start = end;
+        }
+        col_ptr[k] = write;
+        row_idx.truncate(write);
+        Self {
+            free,
+            col_ptr,
+            row_idx,
+        }
+    }
+
+    /// Number of free variables.
+    pub fn len(&self) -> usize {
+        self.free.len()
+    }
+
+    /// The local neighbours of local variable `i`, itself included.
+    pub fn column(&self, i: usize) -> &[usize] {
+        &self.row_idx[self.col_ptr[i]..self.col_ptr[i + 1]]
+    }
 }
 
 /// Approximate minimum degree (faer) of a symmetric pattern given by columns (`col_ptr`,
