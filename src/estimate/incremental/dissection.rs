@@ -25,8 +25,9 @@
 //! nodes of an edge's two ends, one an ancestor of the other): below all its neighbours when
 //! they lie on one path (into the smaller child where a separator has two), at their lowest
 //! common ancestor otherwise. Every edge then joins a node to one of its ancestors, so the
-//! order is still a dissection; only the separators grow. The graph is split afresh once it
-//! has grown by a quarter ([`REPARTITION_GROWTH`]).
+//! order is still a dissection; only the separators grow. A leaf whose subgraph is the same as
+//! at the last renewal (no new variable reached it) keeps its minimum-degree order. The graph is
+//! split afresh once it has grown by a quarter ([`REPARTITION_GROWTH`]).
 //!
 //! METIS is a C library (the `metis-sys` crate builds it from source; feature `metis`, on by
 //! default; without it no graph is split and the order is minimum degree's); no maintained
@@ -64,6 +65,19 @@ pub(crate) struct Dissection {
     node_of: Vec<u32>,
     /// Variables when the graph was split.
     base: usize,
+    /// Each leaf's last minimum-degree order and the subgraph it was computed for, reused
+    /// while the subgraph stays the same (most leaves between two renewals).
+    leaf_orders: Vec<Option<LeafOrder>>,
+}
+
+/// A leaf's subgraph (its variables ascending, its pattern by columns with the diagonal,
+/// numbered by rank) and its minimum-degree order (ranks).
+#[derive(Clone, Debug, PartialEq)]
+struct LeafOrder {
+    vars: Vec<usize>,
+    ptr: Vec<usize>,
+    idx: Vec<usize>,
+    perm: Vec<usize>,
 }
 
 impl Dissection {
@@ -201,7 +215,7 @@ impl Dissection {
 
     /// The order of `p`'s free variables (local indices): the tree in post order, each leaf
     /// by minimum degree, each separator ascending. None if a variable of `p` is not placed.
-    fn order(&self, p: &FreePattern) -> Option<Vec<usize>> {
+    fn order(&mut self, p: &FreePattern) -> Option<Vec<usize>> {
         let mut local_of = vec![usize::MAX; self.node_of.len()];
         for (i, &v) in p.free.iter().enumerate() {
             *local_of.get_mut(v)? = i;
@@ -217,6 +231,7 @@ impl Dissection {
         let mut scratch = vec![usize::MAX; p.len()];
         let mut order = Vec::with_capacity(p.len());
         let mut stack = vec![(0u32, false)];
+        let mut leaves = Vec::new();
         while let Some((t, expanded)) = stack.pop() {
             match (self.kids[t as usize], expanded) {
                 (Some((a, b)), false) => stack.extend([(t, true), (b, false), (a, false)]),
@@ -224,12 +239,34 @@ impl Dissection {
                 (None, _) => {
                     let nodes = locals(t as usize);
                     let (ptr, idx) = induced(p, &nodes, &mut scratch, true);
-                    match amd_order(&ptr, &idx) {
-                        Some(perm) => order.extend(perm.iter().map(|&j| nodes[j])),
-                        None => order.extend(nodes),
-                    }
+                    let vars: Vec<usize> = nodes.iter().map(|&i| p.free[i]).collect();
+                    let cached = (self.leaf_orders.get(t as usize))
+                        .and_then(Option::as_ref)
+                        .filter(|c| c.vars == vars && c.ptr == ptr && c.idx == idx);
+                    let perm = match cached {
+                        Some(c) => c.perm.clone(),
+                        None => {
+                            let perm =
+                                amd_order(&ptr, &idx).unwrap_or_else(|| (0..nodes.len()).collect());
+                            leaves.push((
+                                t as usize,
+                                LeafOrder {
+                                    vars,
+                                    ptr,
+                                    idx,
+                                    perm: perm.clone(),
+                                },
+                            ));
+                            perm
+                        }
+                    };
+                    order.extend(perm.iter().map(|&j| nodes[j]));
                 }
             }
+        }
+        self.leaf_orders.resize(self.vars.len(), None);
+        for (t, leaf) in leaves {
+            self.leaf_orders[t] = Some(leaf);
         }
         (order.len() == p.len()).then_some(order)
     }
@@ -465,7 +502,8 @@ mod tests {
 
     /// Variables added after the split are placed so that the tree stays a dissection, both
     /// when they extend a leaf and when they join two sides (a loop closure across a
-    /// separator); and the tree is split afresh only once the graph has grown by a quarter.
+    /// separator); the leaves they did not reach keep their minimum-degree orders; and the
+    /// tree is split afresh only once the graph has grown by a quarter.
     #[test]
     fn placed_variables_keep_the_dissection() {
         let w = 48;
@@ -494,6 +532,24 @@ mod tests {
         );
         // The same input, the same order (no hash order, METIS's fixed seed).
         assert_eq!(dissected_order(n, &edges, &[n - 1], Some(&tree)).0, order);
+        // The leaves no new variable went to kept their orders; the order is the one computed
+        // without any kept.
+        let unchanged = (grown.leaf_orders.iter().zip(&tree.leaf_orders))
+            .filter(|(a, b)| a.is_some() && a == b)
+            .count();
+        let leaves = tree.kids.iter().filter(|k| k.is_none()).count();
+        assert!(
+            unchanged > 0 && unchanged < leaves,
+            "{unchanged} of {leaves} leaves kept"
+        );
+        let forgetful = Dissection {
+            leaf_orders: Vec::new(),
+            ..tree.clone()
+        };
+        assert_eq!(
+            dissected_order(n, &edges, &[n - 1], Some(&forgetful)).0,
+            order
+        );
         assert!(tree.stale(n0 * 5 / 4 + 1) && !tree.stale(n0 * 5 / 4));
     }
 }
