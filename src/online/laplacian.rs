@@ -612,7 +612,9 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     }
 
     /// Build the factor of the whole system at once, in a fill-reducing order with the newest
-    /// node last (as a renewal does, on this thread), and apply changes to it from now on.
+    /// node last (as a renewal does, on this thread), and apply changes to it from now on. The
+    /// order is minimum degree's at any size: this runs in a step (a replay's end), where a
+    /// split's separators would add to it; later renewals of a large factor dissect.
     pub fn rebuild(&mut self) {
         let n = self.len();
         let last = n.checked_sub(1);
