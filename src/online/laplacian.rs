@@ -79,7 +79,7 @@ const FILL_RATIO: f64 = 1.5;
 /// M3500 120 against 126 µs (twelve): within their noise, so the smaller factors keep 1.5.
 const FILL_RATIO_LARGE: f64 = 1.2;
 /// Variables from which [`FILL_RATIO_LARGE`] and [`LARGE_SIZE`] apply, and renewals order by
-/// nested dissection ([`Ordering::Dissected`]; on M3500 and city10000 it changed the estimate's
+/// nested dissection ([`BuildOrder::Dissected`]; on M3500 and city10000 it changed the estimate's
 /// work by 6 % or less and the builds took longer: measured 2026-12-05).
 const LARGE_FACTOR: usize = 20_000;
 
@@ -96,7 +96,7 @@ const LARGE_FACTOR: usize = 20_000;
 /// of 68 ms in one of two runs (p99 3.9–4.0 ms).
 const LARGE_SIZE: f64 = 1.25;
 
-/// How much later a renewal that splits its graph afresh ([`Ordering::Dissected`] without a
+/// How much later a renewal that splits its graph afresh ([`BuildOrder::Dissected`] without a
 /// tree) is due, as a factor on the work due: its separators cost about as much again as the
 /// rest of its build (about 200 ms against 100 ms for the minimum degree on the 100 000-pose
 /// world). Measured (`so2lin stream FILE --json`, robot order, the newest pose read after every
@@ -211,7 +211,7 @@ pub(crate) type Relinearise<const K: usize> = Box<dyn FnOnce(&mut [[f64; K]]) + 
 type Renewal<const K: usize, const L: usize> = Beside<Building<K, L>, Built<K, L>, Msg<K, L>>;
 
 /// How a build orders the variables.
-enum Ordering {
+enum BuildOrder {
     /// Approximate minimum degree ([`fill_reducing_order`]).
     MinimumDegree,
     /// Nested dissection ([`dissected_order`]): the variables placed in the given tree, or a
@@ -295,7 +295,7 @@ pub(crate) struct Laplacian<const K: usize, const L: usize = 1> {
     /// `x_b − x_a` (signed, per right-hand side) and its [`Leftover::gain`], so that a later
     /// shift of its right-hand side (the wrap a kept loop closure takes) counts net.
     last_moved: ([f64; K], [f64; L]),
-    /// The dissection of the last renewal ordered by one ([`Ordering::Dissected`]), in which
+    /// The dissection of the last renewal ordered by one ([`BuildOrder::Dissected`]), in which
     /// the next places the nodes added since.
     dissection: Option<Arc<Dissection>>,
     /// Renewals from this many variables order by nested dissection ([`LARGE_FACTOR`]).
@@ -410,7 +410,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
                     self.renewal = None;
                     let n = self.len();
                     self.factor =
-                        build(&self.rows, &self.prior, n, None, Ordering::MinimumDegree).0;
+                        build(&self.rows, &self.prior, n, None, BuildOrder::MinimumDegree).0;
                 }
             }
         }
@@ -618,7 +618,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     pub fn rebuild(&mut self) {
         let n = self.len();
         let last = n.checked_sub(1);
-        self.install(build(&self.rows, &self.prior, n, last, Ordering::MinimumDegree).0);
+        self.install(build(&self.rows, &self.prior, n, last, BuildOrder::MinimumDegree).0);
         self.nodes_at_renewal = n;
         self.deferred = false;
     }
@@ -719,22 +719,23 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         // The builder's work grows with the size of the factor it builds (about the last
         // renewal's fill per row), not with the live factor's fill, which is what grows
         // without bound between renewals.
-        let mut expected_nnz = self.fill_after_renewal.max(2.0) * n as f64;
-        let ordering = if n >= self.dissect_from {
-            let tree = self.dissection.clone().filter(|t| !t.stale(n));
-            if tree.is_none() {
-                // Its separators are computed too.
-                expected_nnz *= SPLIT_BUILD;
-            }
-            Ordering::Dissected(tree)
+        let expected_nnz = self.fill_after_renewal.max(2.0) * n as f64;
+        let order = if n >= self.dissect_from {
+            BuildOrder::Dissected(self.dissection.clone().filter(|t| !t.stale(n)))
         } else {
-            Ordering::MinimumDegree
+            BuildOrder::MinimumDegree
+        };
+        // A fresh split computes its separators too.
+        let split = if matches!(order, BuildOrder::Dissected(None)) {
+            SPLIT_BUILD
+        } else {
+            1.0
         };
         let build = move || {
             if let Some(job) = relinearise {
                 job(&mut rows.y);
             }
-            let (f, tree) = build(&rows, &prior, n, Some(newest), ordering);
+            let (f, tree) = build(&rows, &prior, n, Some(newest), order);
             Some((f, rows, tree))
         };
         // Keep up with the live system until collected.
@@ -776,7 +777,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         let finish = |(f, rows, tree): Building<K, L>| (f, rows.y, tree);
         let due = Due {
             step: self.steps + MIN_DELAY,
-            work: self.work + (expected_nnz * work_per_nonzero(n, L)) as u64,
+            work: self.work + (expected_nnz * split * work_per_nonzero(n, L)) as u64,
         };
         let worker = &mut self.worker;
         let renewal = Beside::start(worker, "so2lin-renew", build, apply, finish)?;
@@ -863,13 +864,13 @@ fn reset_rhs<const K: usize, const L: usize>(
 }
 
 /// A factor of the whole system in a fill-reducing order (`last` at the end), and the
-/// dissection the order came from ([`Ordering::Dissected`]).
+/// dissection the order came from ([`BuildOrder::Dissected`]).
 fn build<const K: usize, const L: usize>(
     rows: &Rows<K, L>,
     prior: &[[f64; L]],
     n: usize,
     last: Option<usize>,
-    ordering: Ordering,
+    ordering: BuildOrder,
 ) -> (SqrtInfo<K, L>, Option<Dissection>) {
     let ends: Vec<(usize, usize)> = rows
         .ends
@@ -878,8 +879,8 @@ fn build<const K: usize, const L: usize>(
         .collect();
     let last: Vec<usize> = last.into_iter().collect();
     let (order, tree) = match ordering {
-        Ordering::MinimumDegree => (fill_reducing_order(n, &ends, &last), None),
-        Ordering::Dissected(tree) => {
+        BuildOrder::MinimumDegree => (fill_reducing_order(n, &ends, &last), None),
+        BuildOrder::Dissected(tree) => {
             let (order, tree) = dissected_order(n, &ends, &last, tree.as_deref());
             (order, Some(tree))
         }
