@@ -33,7 +33,7 @@
 //! variable costs its elimination-tree path to the root; all of them one back-substitution.
 //! A marginal variance is `‖R⁻ᵀ e_v‖²` (one forward solve along the path). No update factors
 //! a matrix from scratch: that is [`SqrtInfo::factored`] alone (module `factored`: a new
-//! fill-reducing order, by a sparse Cholesky of the normal equations, simplicial or
+//! fill-reducing order, by a sparse Cholesky of the normal equations, up-looking or
 //! supernodal), which the owner runs beside the live factor (a
 //! renewal) or once at the end of a replay whose answers nobody read.
 //!

@@ -7,21 +7,19 @@
 //! AᵀA = L Lᵀ   (in that order, a sparse Cholesky),   R = Lᵀ,   Rᵀ d = Aᵀβ,
 //! ```
 //!
-//! one symbolic factorization for every lane and a numeric one per lane: faer's simplicial
-//! Cholesky (column by column), or its supernodal one (dense blocks of columns with a common
-//! pattern) where the flops per nonzero of L make the blocks pay ([`supernodal_pays`]). Rows are
-//! rotated in instead only by the caller, when the Cholesky meets a non-positive pivot.
+//! one symbolic analysis (faer's elimination tree and column counts) for every lane, then an
+//! up-looking simplicial Cholesky of all lanes at once written straight into R's rows
+//! ([`SqrtInfo::rows_up_looking`]), or faer's supernodal one per lane (dense blocks of columns
+//! with a common pattern) where the flops per nonzero of L make the blocks pay
+//! ([`supernodal_pays`]). Rows are rotated in instead only by the caller, when the Cholesky meets
+//! a non-positive pivot.
 
 use super::{Lanes, Row, SqrtInfo, is_zero};
 
-/// A column of the normal equations being assembled ([`SqrtInfo::factored`]): (position,
-/// value per lane), a few per column.
-type NormalColumn<const L: usize> = smallvec::SmallVec<[(usize, [f64; L]); 4]>;
-
 impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     /// The factor of the rows given, in the variable order `order`, computed at once: the
-    /// normal equations `AᵀA` in that order factored by a sparse Cholesky (faer's, simplicial
-    /// or, where its flops per nonzero make dense blocks pay, supernodal: [`supernodal_pays`]),
+    /// normal equations `AᵀA` in that order factored by a sparse Cholesky (simplicial, or where
+    /// its flops per nonzero make dense blocks pay faer's supernodal one: [`supernodal_pays`]),
     /// `R = Lᵀ`, then d by one forward solve. Far cheaper than rotating every row in; `None`
     /// when the Cholesky meets a non-positive pivot (extreme weights: the caller rotates the
     /// rows in instead, which is the better-conditioned QR).
@@ -48,39 +46,54 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         let n = order.len();
         // The upper triangle of AᵀA in positions, column by column: the diagonal summed apart,
         // the entries above it sorted (stably: repeats — parallel edges — summed in the rows'
-        // order), every diagonal present. Built here rather than from triplets: faer sorts a
-        // triplet list as a whole, which took a third of this function's time. A column of d
-        // entries costs its sort, O(d log d), however high a node's degree.
+        // order), every diagonal present. The products are listed as they come, then counted
+        // into their columns (stable) and each column sorted by row: faer's triplet sort took
+        // a third of this function's time, a small vector per column (spilling to the heap
+        // past four entries) a tenth of a renewal's build.
         let mut diag = vec![[0.0; L]; n];
-        let mut cols: Vec<NormalColumn<L>> = vec![Default::default(); n];
+        let mut products: Vec<(u32, u32, [f64; L])> = Vec::new();
+        let mut col_ptr = vec![0usize; n + 1];
         for (entries, _) in rows.clone() {
             for &(u, a) in &entries {
                 for &(v, b) in &entries {
-                    let (pu, pv) = (f.pos_of[u] as usize, f.pos_of[v] as usize);
+                    let (pu, pv) = (f.pos_of[u], f.pos_of[v]);
                     let (a, b) = (a.lanes(), b.lanes());
                     if is_zero(&a) || is_zero(&b) {
                         continue;
                     }
                     let ab: [f64; L] = std::array::from_fn(|l| a[l] * b[l]);
                     if pu == pv {
-                        for (d, x) in diag[pu].iter_mut().zip(ab) {
+                        for (d, x) in diag[pu as usize].iter_mut().zip(ab) {
                             *d += x;
                         }
                     } else if pu < pv {
-                        cols[pv].push((pu, ab));
+                        products.push((pv, pu, ab));
+                        col_ptr[pv as usize + 1] += 1;
                     }
                 }
             }
         }
-        let mut col_ptr = Vec::with_capacity(n + 1);
-        let mut row_idx: Vec<usize> = Vec::new();
+        for c in 0..n {
+            col_ptr[c + 1] += col_ptr[c];
+        }
+        let mut by_column = vec![(0u32, [0.0; L]); products.len()];
+        let mut next = col_ptr.clone();
+        for &(c, r, x) in &products {
+            by_column[next[c as usize]] = (r, x);
+            next[c as usize] += 1;
+        }
+        drop(products);
+        let mut row_idx: Vec<usize> = Vec::with_capacity(by_column.len() + n);
         // The lanes' values apart (faer takes one slice per matrix).
-        let mut a_values: [Vec<f64>; L] = std::array::from_fn(|_| Vec::new());
-        col_ptr.push(0usize);
-        for (p, col) in cols.iter_mut().enumerate() {
+        let mut a_values: [Vec<f64>; L] =
+            std::array::from_fn(|_| Vec::with_capacity(by_column.len() + n));
+        for p in 0..n {
+            let col = &mut by_column[col_ptr[p]..col_ptr[p + 1]];
             col.sort_by_key(|&(r, _)| r);
+            col_ptr[p] = row_idx.len();
             let start = row_idx.len();
             for &(r, x) in col.iter() {
+                let r = r as usize;
                 if row_idx.len() > start && row_idx.last() == Some(&r) {
                     for (values, x) in a_values.iter_mut().zip(x) {
                         if let Some(last) = values.last_mut() {
@@ -98,15 +111,13 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
             for (values, x) in a_values.iter_mut().zip(diag[p]) {
                 values.push(x);
             }
-            col_ptr.push(row_idx.len());
         }
-        drop(cols);
+        col_ptr[n] = row_idx.len();
+        drop(by_column);
         let pattern = SymbolicSparseColMatRef::new_checked(n, n, &col_ptr, None, &row_idx);
         let nnz = row_idx.len();
         let mut mem = MemBuffer::try_new(StackReq::any_of(&[
             simplicial::prefactorize_symbolic_cholesky_scratch::<usize>(n, nnz),
-            simplicial::factorize_simplicial_symbolic_cholesky_scratch::<usize>(n),
-            simplicial::factorize_simplicial_numeric_llt_scratch::<usize, f64>(n),
             supernodal::factorize_supernodal_symbolic_cholesky_scratch::<usize>(n),
         ]))
         .ok()?;
@@ -128,7 +139,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         if supernodal {
             f.rows_supernodal(normal, stack)?;
         } else {
-            f.rows_simplicial(normal, stack)?;
+            f.rows_up_looking(normal)?;
         }
         if f.diag
             .iter()
@@ -149,7 +160,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
 pub(super) enum Cholesky {
     /// Supernodal when [`supernodal_pays`], simplicial otherwise.
     Auto,
-    /// Column by column (faer's simplicial `LLᵀ`).
+    /// Row by row of L, every lane at once ([`SqrtInfo::rows_up_looking`]).
     Simplicial,
     /// By dense blocks of columns with a common pattern (faer's supernodal `LLᵀ`).
     Supernodal,
@@ -169,13 +180,13 @@ struct NormalEquations<'a, const L: usize> {
 /// Flops of the factorization per nonzero of L beyond which [`SqrtInfo::factored`] factors
 /// supernodally: faer's own rule for choosing (its high-level symbolic Cholesky with the
 /// automatic threshold), the flops counted from the column counts as faer counts them. The
-/// dense blocks pay where the top of the elimination tree is dense: on the 100 000-pose
-/// simulated world the numeric factorization of a renewal at 97 000–99 000 variables (3.7–3.9
-/// M nonzeros of L, 127 flops per nonzero at 98 000) took 106–118 ms supernodally against 415–600
-/// ms column by column, and the symbolic one 17–18 ms against 49–59 ms; on city10000 (15
-/// flops per nonzero) 3.4 ms against 2.3–2.6 ms: column by column is cheaper there. M3500's
-/// renewals have about 8, the simulated world passes 40 at about 45 000 poses (a build on the
-/// renewal's thread, timed inside it, 2026-12-05).
+/// dense blocks pay where the top of the elimination tree is dense. Measured on each graph's
+/// final factor (three right-hand sides, one lane, the whole of [`SqrtInfo::factored`] after
+/// the order, one thread, 2026-12-05): the up-looking factorization against the supernodal one
+/// took 1.0 against 2.1 ms on M3500 (7.4 flops per nonzero), 2.4 against 5.0 ms on ais2klinik
+/// (3.3), 5.2 against 7.8 ms on city10000 (15.7); 14.5 against 9.6 ms on a 10 000-pose simulated
+/// world (51), 84 against 40 ms on a 30 000-pose one (79) and 540–564 against 223–224 ms on the
+/// 100 000-pose one (126).
 const SUPERNODAL_FLOPS_PER_NONZERO: f64 = 40.0;
 
 /// Whether a factor with these column counts (of L, diagonal included) is factored
@@ -191,63 +202,91 @@ pub(super) fn supernodal_pays(counts: &[usize]) -> bool {
 }
 
 impl<const K: usize, const L: usize> SqrtInfo<K, L> {
-    /// R's rows and diagonal from a simplicial Cholesky of the normal equations (one symbolic
-    /// factorization, a numeric one per lane): column j of L is row j of R. None when a
-    /// factorization fails.
-    fn rows_simplicial(
-        &mut self,
-        normal: NormalEquations<'_, L>,
-        stack: &mut faer::dyn_stack::MemStack,
-    ) -> Option<()> {
-        use faer::linalg::cholesky::llt::factor::LltRegularization;
-        use faer::sparse::SparseColMatRef;
-        use faer::sparse::linalg::cholesky::simplicial;
-        let symbolic = simplicial::factorize_simplicial_symbolic_cholesky(
-            normal.pattern,
-            normal.tree,
-            normal.counts,
-            stack,
-        )
-        .ok()?;
-        let mut values: [Vec<f64>; L] = std::array::from_fn(|_| vec![0.0; symbolic.len_val()]);
-        for (values, a_values) in values.iter_mut().zip(normal.values) {
-            simplicial::factorize_simplicial_numeric_llt(
-                values,
-                SparseColMatRef::new(normal.pattern, a_values),
-                LltRegularization::default(),
-                &symbolic,
-                &mut *stack,
-            )
-            .ok()?;
+    /// R's rows and diagonal from a simplicial Cholesky of the normal equations, every lane in
+    /// one pass and written straight into R's rows. Up-looking (row k of L at a time, as
+    /// CSparse's `cs_chol`): the pattern of row k of L is the reach of column k of `AᵀA` in the
+    /// elimination tree, and its values solve `L₀₀ l = a` over that reach,
+    ///
+    /// ```text
+    /// l_kj = (a_jk − Σ_{i<j} L_ji l_ki) / L_jj   (j in the reach, descendants first),
+    /// L_kk = √(a_kk − Σ_j l_kj²),
+    /// ```
+    ///
+    /// each `l_kj` appended to row j of R (column j of L), so the rows come out sorted with no
+    /// copy. Written here rather than taken from faer's simplicial Cholesky, which factors one
+    /// matrix per call into its own column storage: on M3500's renewals (two lanes, 2 400–3 200
+    /// variables) its two numeric passes and the copy into rows took 1.1–1.3 ms of a 3 ms build.
+    /// None when a pivot is not positive and finite.
+    fn rows_up_looking(&mut self, normal: NormalEquations<'_, L>) -> Option<()> {
+        let n = self.len();
+        let parent = normal.tree.into_inner();
+        let (col_ptr, row_idx) = (normal.pattern.col_ptr(), normal.pattern.row_idx());
+        for (row, &count) in self.rows.iter_mut().zip(normal.counts) {
+            row.clear();
+            row.pos.reserve_exact(count.saturating_sub(1));
+            row.val.reserve_exact(count.saturating_sub(1));
         }
-        let (col_ptr, row_idx) = (symbolic.col_ptr(), symbolic.row_idx());
-        let mut entries: Vec<(u32, [f64; L])> = Vec::new();
-        for j in 0..self.len() {
-            entries.clear();
-            for t in col_ptr[j]..col_ptr[j + 1] {
-                let i = row_idx[t];
-                let v: [f64; L] = std::array::from_fn(|l| values[l][t]);
-                if i == j {
-                    self.diag[j] = v;
-                } else if !is_zero(&v) {
-                    entries.push((i as u32, v));
+        // The solve's dense scratch, zero outside the current row's reach.
+        let mut x = vec![[0.0; L]; n];
+        let mut mark = vec![usize::MAX; n];
+        // The reach of row k (`reach[top..]`, descendants before ancestors), and one path.
+        let mut reach = vec![0usize; n];
+        let mut path: Vec<usize> = Vec::new();
+        let mut nnz = 0;
+        for k in 0..n {
+            mark[k] = k;
+            let mut top = n;
+            let mut dk = [0.0; L];
+            let (start, end) = (col_ptr[k], col_ptr[k + 1]);
+            for (t, &i) in (start..end).zip(&row_idx[start..end]) {
+                let a: [f64; L] = std::array::from_fn(|l| normal.values[l][t]);
+                if i == k {
+                    dk = a;
+                    continue;
+                }
+                x[i] = a;
+                // Up the tree from i to the reach found so far (k itself at the latest).
+                let mut j = i;
+                while mark[j] != k {
+                    path.push(j);
+                    mark[j] = k;
+                    j = usize::try_from(parent[j]).ok()?;
+                }
+                // This path's nodes are descendants of those already in the reach: before them.
+                while let Some(j) = path.pop() {
+                    top -= 1;
+                    reach[top] = j;
                 }
             }
-            entries.sort_unstable_by_key(|&(p, _)| p);
-            let mut row = Row {
-                pos: Vec::with_capacity(entries.len()),
-                val: Vec::with_capacity(entries.len()),
-            };
-            for &(p, v) in &entries {
-                row.push(p, v);
+            for &j in &reach[top..] {
+                let xj = std::mem::replace(&mut x[j], [0.0; L]);
+                let dj = self.diag[j];
+                let lkj: [f64; L] = std::array::from_fn(|l| xj[l] / dj[l]);
+                let row = &mut self.rows[j];
+                for (&p, v) in row.pos.iter().zip(&row.val) {
+                    let xp = &mut x[p as usize];
+                    for l in 0..L {
+                        xp[l] -= v[l] * lkj[l];
+                    }
+                }
+                for l in 0..L {
+                    dk[l] -= lkj[l] * lkj[l];
+                }
+                if !is_zero(&lkj) {
+                    row.push(k as u32, lkj);
+                    nnz += 1;
+                }
             }
-            self.nnz += row.len();
-            self.rows[j] = row;
+            if !dk.iter().all(|&d| d > 0.0 && d.is_finite()) {
+                return None;
+            }
+            self.diag[k] = dk.map(f64::sqrt);
         }
+        self.nnz += nnz;
         Some(())
     }
 
-    /// [`Self::rows_simplicial`] by a supernodal Cholesky: supernode s holds columns
+    /// [`Self::rows_up_looking`] by a supernodal Cholesky: supernode s holds columns
     /// `begin..end` of L as one dense column-major block, rows `begin..end` then its pattern
     /// below them; column j of the block (its entries below the diagonal that are not zero:
     /// the supernodes are relaxed, padded with explicit zeros) is row j of R.
