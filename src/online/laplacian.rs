@@ -160,7 +160,7 @@ fn work_per_nonzero(n: usize, lanes: usize) -> f64 {
 /// that lane (which [`SqrtInfo::take_work`] counts per value, so a two-lane factor's work
 /// comes twice as fast), at M3500's size; it grows with the factor as the build's cost per
 /// nonzero does ([`work_per_nonzero`]'s size factor): a build of two lanes makes one order and
-/// one symbolic factorization for both, but two numeric ones, and rotates two lanes. Measured
+/// one symbolic factorization for both, but twice the numeric work, and rotates two lanes. Measured
 /// (`so2lin stream FILE --json`, robot order, the newest pose read after every step,
 /// alternating runs, 2026-12-05): on M3500 at 0 its collections waited for the builder and
 /// the worst step was 2.4–3.1 ms in a slow hour (1.4–1.9 ms in a quiet one); at 0.15
