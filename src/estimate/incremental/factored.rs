@@ -48,8 +48,8 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         // the entries above it sorted (stably: repeats — parallel edges — summed in the rows'
         // order), every diagonal present. The products are listed as they come, then counted
         // into their columns (stable) and each column sorted by row: faer's triplet sort took
-        // a third of this function's time, a small vector per column (spilling to the heap
-        // past four entries) a tenth of a renewal's build.
+        // a third of this function's time, and a small vector per column (spilling to the heap
+        // past four entries) 0.33 against 0.26 ms on M3500.
         let mut diag = vec![[0.0; L]; n];
         let mut products: Vec<(u32, u32, [f64; L])> = Vec::new();
         let mut col_ptr = vec![0usize; n + 1];
@@ -215,8 +215,8 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     /// each `l_kj` appended to row j of R (column j of L), so the rows come out sorted with no
     /// copy. Written here rather than taken from faer's simplicial Cholesky, which factors one
     /// matrix per call into its own column storage: on M3500's renewals (two lanes, 2 400–3 200
-    /// variables) its two numeric passes and the copy into rows took 1.1–1.3 ms of a 3 ms build.
-    /// None when a pivot is not positive and finite.
+    /// variables) its two numeric passes and the copy into rows took 1.2–1.3 ms of a 3–3.5 ms
+    /// build. None when a pivot is not positive and finite.
     fn rows_up_looking(&mut self, normal: NormalEquations<'_, L>) -> Option<()> {
         let n = self.len();
         let parent = normal.tree.into_inner();
