@@ -79,8 +79,12 @@ const FILL_RATIO: f64 = 1.5;
 /// M3500 120 against 126 µs (twelve): within their noise, so the smaller factors keep 1.5.
 const FILL_RATIO_LARGE: f64 = 1.2;
 /// Variables from which [`FILL_RATIO_LARGE`] and [`LARGE_SIZE`] apply, and renewals order by
-/// nested dissection ([`BuildOrder::Dissected`]; on M3500 and city10000 it changed the estimate's
-/// work by 6 % or less and the builds took longer: measured 2026-12-05).
+/// nested dissection ([`BuildOrder::Dissected`]). Below it dissection did not pay (`so2lin stream
+/// M3500.g2o --json`, robot order, the newest pose read after every step, 2026-12-05): from 256
+/// variables the estimate's work was 39.5 M values against 33.5 M for minimum degree alone (its
+/// fresh splits, due twice as late, come at nearly every renewal of a small graph), p99 167
+/// against 148 µs; with fresh splits due as the others 32.0 M, p99 144 µs but a worst step of
+/// 2.1 ms (three runs each); city10000 changed by 6 % or less and its builds took longer.
 const LARGE_FACTOR: usize = 20_000;
 
 /// [`work_per_nonzero`]'s size factor from [`LARGE_FACTOR`] variables (1.5 below, from 5 500):

@@ -16,7 +16,9 @@
 //! the top of large grid-like worlds: on `so2lin simulate --poses 100000 --seed 1` a loop
 //! closure's path in the full graph's factor holds 542 000 entries on average, against 197 000
 //! after four levels of dissection (and 3.46 M nonzeros in L against 4.03 M). On M3500 and
-//! city10000 the gain was within the noise, so the owner dissects large factors only.
+//! city10000 the chain of nodes appended since a renewal, not the old part's paths, sets the
+//! loop closures' work, and dissection gained nothing (M3500's work grew, its p99 stayed within
+//! the noise), so the owner dissects large factors only.
 //!
 //! **Kept from one renewal to the next.** The separators cost more than the minimum degree
 //! (about 200 ms against 100 ms on that world), so a [`Dissection`] is kept and a later
