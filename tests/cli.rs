@@ -405,6 +405,58 @@ fn stream_json_reports_latency_and_matches_screen() {
     assert!(text.contains("p99") && text.contains("cycle"), "{text}");
 }
 
+/// `stream --rate HZ` feeds the edges as a robot's front end would, one every 1/HZ seconds: the
+/// run lasts at least that long (sleeps never end early), reports its rate and how far it fell
+/// behind, and answers exactly as back to back (the steps, not the clock, decide). A rate that
+/// is not a positive number is refused, naming the option.
+#[test]
+fn stream_at_a_rate_paces_the_edges_and_answers_the_same() {
+    let g = simulated("stream_rate.g2o", &["--poses", "150", "--seed", "3"]);
+    let fast = run_json(["stream".as_ref(), "--json".as_ref(), g.as_os_str()]);
+    assert!(
+        fast["rate_hz"].is_null() && fast["max_lag_ms"].is_null(),
+        "{fast}"
+    );
+    let hz = 2000.0;
+    let paced = run_json([
+        "stream".as_ref(),
+        "--json".as_ref(),
+        "--rate".as_ref(),
+        "2000".as_ref(),
+        g.as_os_str(),
+    ]);
+    assert_eq!(paced["rate_hz"].as_f64(), Some(hz));
+    assert!(paced["max_lag_ms"].as_f64().unwrap() >= 0.0);
+    let steps = paced["steps"].as_u64().unwrap();
+    assert!(steps > 150, "{paced}");
+    let stream = paced["stream_seconds"].as_f64().unwrap();
+    assert!(
+        stream >= (steps - 1) as f64 / hz,
+        "{stream} s for {steps} steps"
+    );
+    for key in [
+        "steps",
+        "cycles",
+        "determined",
+        "hypotheses",
+        "work_per_step",
+    ] {
+        assert_eq!(fast[key], paced[key], "{key}");
+    }
+    for bad in ["0", "-5", "nan", "inf", "fast"] {
+        let out = so2lin()
+            .args(["stream", &format!("--rate={bad}")])
+            .arg(&g)
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "--rate {bad}");
+        assert!(
+            String::from_utf8_lossy(&out.stderr).contains("--rate"),
+            "--rate {bad}"
+        );
+    }
+}
+
 #[test]
 fn screen_reports_one_anchor_per_component() {
     let f = scratch("forest.g2o");

@@ -356,6 +356,12 @@ enum Command {
         /// (by default it is quarantined: kept out of the estimate, listed, re-tested later).
         #[arg(long)]
         no_quarantine: bool,
+        /// Feed the edges at this rate (edges per second), as a robot's front end produces
+        /// them: edge k arrives k/HZ seconds after the first and the stream sleeps until then;
+        /// each step is timed from its start, and how far the steps fell behind the arrivals
+        /// is reported [default: back to back, as fast as the steps go].
+        #[arg(long, value_name = "HZ")]
+        rate: Option<f64>,
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
@@ -495,9 +501,11 @@ fn main() -> ExitCode {
             estimate,
             info_order,
             no_quarantine,
+            rate,
             json,
         } => {
             let step_time_ok = step_time.is_finite() && (0.0..1e6).contains(&step_time);
+            let rate_ok = rate.is_none_or(|r| r.is_finite() && r > 0.0 && r <= 1e9);
             let config = OnlineConfig {
                 screening: screening.config(),
                 quarantine: !no_quarantine,
@@ -509,6 +517,11 @@ fn main() -> ExitCode {
             if !step_time_ok {
                 Err(format!(
                     "--step-time {step_time}: must be a number of seconds in [0, 10⁶)"
+                ))
+            } else if !rate_ok {
+                Err(format!(
+                    "--rate {}: must be a number of edges per second in (0, 10⁹]",
+                    rate.unwrap_or(f64::NAN)
                 ))
             } else {
                 stream::run(stream::StreamArgs {
@@ -524,6 +537,7 @@ fn main() -> ExitCode {
                         ..Default::default()
                     },
                     step_time_ns: (step_time * 1e9) as u64,
+                    rate,
                     json,
                 })
             }

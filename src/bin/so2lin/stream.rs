@@ -46,6 +46,8 @@ pub struct StreamArgs<'a> {
     pub log_options: LogOptions,
     /// Log time between steps (the file's edges carry no timestamps).
     pub step_time_ns: u64,
+    /// Edges per second, as a robot's front end sends them (None: back to back).
+    pub rate: Option<f64>,
     pub json: bool,
 }
 
@@ -153,7 +155,19 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     // same on every machine (module `so2lin::work`).
     let mut work: [Vec<u64>; 3] = Default::default();
     let mut sink = 0.0;
+    // With a rate, edge k arrives k/rate after the first; the stream sleeps until then, and
+    // records how far a step started after its edge's arrival (the steps before it overran).
+    let paced = Instant::now();
+    let mut max_lag = std::time::Duration::ZERO;
     for (k, &edge) in edges.iter().enumerate() {
+        if let Some(hz) = args.rate {
+            let arrival = std::time::Duration::from_secs_f64(k as f64 / hz);
+            let now = paced.elapsed();
+            match arrival.checked_sub(now) {
+                Some(wait) => std::thread::sleep(wait),
+                None => max_lag = max_lag.max(now - arrival),
+            }
+        }
         let w0 = so2lin::work::on_this_thread();
         let t = Instant::now();
         let step = est.add_edge(edge).map_err(|e| e.to_string())?;
@@ -240,6 +254,8 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "config": args.config,
             "edge_order": args.edge_order,
             "estimate": args.estimate,
+            "rate_hz": args.rate,
+            "max_lag_ms": args.rate.map(|_| max_lag.as_secs_f64() * 1e3),
             "estimate_renewals": c.estimate_renewals,
             "renewal_waits": c.renewal_waits,
             "estimate_relinearisations": c.estimate_relinearisations,
@@ -296,7 +312,14 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         EdgeOrder::Robot => "robot order",
         EdgeOrder::File => "file order",
     };
-    println!("latency per step in µs ({order}, {read}):");
+    let pace = match args.rate {
+        Some(hz) => format!(
+            "edges at {hz} Hz, at most {:.3} ms behind their arrival",
+            max_lag.as_secs_f64() * 1e3
+        ),
+        None => "edges back to back".to_owned(),
+    };
+    println!("latency per step in µs ({order}, {read}, {pace}):");
     println!("                              p50       p90       p99     worst      mean");
     for (name, l) in &lat {
         println!(
