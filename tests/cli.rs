@@ -418,11 +418,14 @@ fn stream_at_a_rate_paces_the_edges_and_answers_the_same() {
         "{fast}"
     );
     let hz = 2000.0;
+    let log = scratch("stream_rate.mcap");
     let paced = run_json([
         "stream".as_ref(),
         "--json".as_ref(),
         "--rate".as_ref(),
         "2000".as_ref(),
+        "--log".as_ref(),
+        log.as_os_str(),
         g.as_os_str(),
     ]);
     assert_eq!(paced["rate_hz"].as_f64(), Some(hz));
@@ -443,6 +446,19 @@ fn stream_at_a_rate_paces_the_edges_and_answers_the_same() {
     ] {
         assert_eq!(fast[key], paced[key], "{key}");
     }
+    // Without --step-time the log's clock follows the pace: one newest pose every 1/HZ.
+    let bytes = std::fs::read(&log).unwrap();
+    let times: Vec<u64> = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .map(Result::unwrap)
+        .filter(|m| m.channel.topic == "/pose")
+        .map(|m| m.log_time)
+        .collect();
+    assert_eq!(times.len() as u64, steps);
+    assert!(
+        times.windows(2).all(|w| w[1] - w[0] == 500_000),
+        "{times:?}"
+    );
     for bad in ["0", "-5", "nan", "inf", "fast"] {
         let out = so2lin()
             .args(["stream", &format!("--rate={bad}")])

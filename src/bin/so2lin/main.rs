@@ -339,9 +339,10 @@ enum Command {
         #[arg(long, value_name = "N", default_value_t = 100)]
         snapshot_every: usize,
         /// With --log: log time between steps in seconds (file edges carry no timestamps; the
-        /// first step is at the wall-clock time of the run).
-        #[arg(long, value_name = "SECONDS", default_value_t = 0.1)]
-        step_time: f64,
+        /// first step is at the wall-clock time of the run) [default: 0.1, or 1/HZ with
+        /// --rate].
+        #[arg(long, value_name = "SECONDS")]
+        step_time: Option<f64>,
         /// Order in which edges reach the estimator: as a robot produces them (an edge when
         /// its later node appears) or as the file lists them.
         #[arg(long, value_enum, default_value = "robot")]
@@ -504,8 +505,13 @@ fn main() -> ExitCode {
             rate,
             json,
         } => {
-            let step_time_ok = step_time.is_finite() && (0.0..1e6).contains(&step_time);
             let rate_ok = rate.is_none_or(|r| r.is_finite() && r > 0.0 && r <= 1e9);
+            // The log's clock follows the edges' pace unless given.
+            let step_time = step_time.unwrap_or(match rate {
+                Some(hz) if rate_ok => hz.recip(),
+                _ => 0.1,
+            });
+            let step_time_ok = step_time.is_finite() && (0.0..1e6).contains(&step_time);
             let config = OnlineConfig {
                 screening: screening.config(),
                 quarantine: !no_quarantine,
