@@ -195,11 +195,17 @@ impl LogContents {
             None => true,
             Some(v) => v.parse().map_err(|_| parse_err("estimate_every_step"))?,
         };
+        // Logs written before the setting existed lack the key: they ran with the default.
+        let renewal_delay = match self.metadata.get("renewal_delay") {
+            None => 1.0,
+            Some(v) => v.parse().map_err(|_| parse_err("renewal_delay"))?,
+        };
         Ok(OnlineConfig {
             screening,
             quarantine,
             evict,
             estimate_every_step,
+            renewal_delay,
         })
     }
 }

@@ -32,6 +32,7 @@ fn configs_round_trip_through_json() {
         quarantine: false,
         evict: true,
         estimate_every_step: false,
+        renewal_delay: 0.25,
     });
     round_trip(BatchConfig {
         basis: BasisKind::Mcb,

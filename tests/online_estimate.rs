@@ -24,7 +24,17 @@ fn stream_and_compare_with(
     edges: &[Edge],
     check: impl Fn(usize, bool) -> bool,
 ) -> (usize, so2lin::online::Counters) {
-    let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+    stream_and_compare_config(name, edges, OnlineConfig::default(), check)
+}
+
+/// [`stream_and_compare_with`] with `config`.
+fn stream_and_compare_config(
+    name: &str,
+    edges: &[Edge],
+    config: OnlineConfig,
+    check: impl Fn(usize, bool) -> bool,
+) -> (usize, so2lin::online::Counters) {
+    let mut est = OnlineEstimator::new(config).unwrap();
     let mut prev_wraps: Vec<i64> = Vec::new();
     let mut prev_gamma: Vec<i64> = Vec::new();
     let mut gamma_moved = 0;
@@ -142,6 +152,53 @@ fn long_worlds_renew_their_order_and_stay_exact() {
         cycle && i % 7 == 0 || i % 97 == 0
     });
     assert!(counters.estimate_renewals >= 2, "{counters:?}");
+}
+
+/// A shorter renewal delay (for a front end that leaves the builder time between edges) swaps
+/// renewals in sooner: more of them and less live work per step, the estimate exact at every
+/// step checked. A delay that is not a finite positive number is refused.
+#[test]
+fn a_shorter_renewal_delay_renews_sooner_and_stays_exact() {
+    let w = simulate(&SimConfig::new(3000, 3)).unwrap();
+    let check = |i: usize, cycle: bool| cycle && i.is_multiple_of(7) || i.is_multiple_of(97);
+    let sooner = OnlineConfig {
+        renewal_delay: 0.2,
+        ..OnlineConfig::default()
+    };
+    let (_, counters) = stream_and_compare_config("sim3000 sooner", w.graph.edges(), sooner, check);
+    // The live factor's work, reading the newest pose after every step as a robot does.
+    let work = |config: OnlineConfig| {
+        let mut est = OnlineEstimator::new(config).unwrap();
+        let before = so2lin::work::on_this_thread();
+        for e in w.graph.edges() {
+            est.add_edge(*e).unwrap();
+            est.newest().unwrap();
+        }
+        let spent = so2lin::work::on_this_thread()
+            .since(before)
+            .estimate_entries;
+        (spent, est.counters().estimate_renewals)
+    };
+    let (default_work, default_renewals) = work(OnlineConfig::default());
+    let (sooner_work, sooner_renewals) = work(sooner);
+    assert_eq!(sooner_renewals, counters.estimate_renewals);
+    assert!(
+        sooner_renewals > default_renewals && sooner_work < default_work,
+        "renewals {sooner_renewals} vs {default_renewals}, work {sooner_work} vs {default_work}"
+    );
+    for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+        let config = OnlineConfig {
+            renewal_delay: bad,
+            ..OnlineConfig::default()
+        };
+        assert!(
+            matches!(
+                OnlineEstimator::new(config),
+                Err(so2lin::online::OnlineError::RenewalDelay(_))
+            ),
+            "{bad}"
+        );
+    }
 }
 
 #[test]

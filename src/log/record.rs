@@ -241,6 +241,7 @@ impl Recorder {
                 "estimate_every_step",
                 config.estimate_every_step.to_string(),
             ),
+            ("renewal_delay", format!("{:?}", config.renewal_delay)),
         ]
         .into_iter()
         .map(|(k, v)| (k.to_owned(), v))

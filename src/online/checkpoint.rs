@@ -210,7 +210,7 @@ impl OnlineEstimator {
             screener: self.screener.without_conditioner(),
             ambiguous: self.ambiguous.clone(),
             counters: self.counters,
-            estimate: Estimate::default(),
+            estimate: Estimate::new(self.config.renewal_delay),
             gamma: self.gamma.clone(),
             wrap: self.wrap.clone(),
             chord_cycle: self.chord_cycle.clone(),
@@ -263,7 +263,7 @@ impl OnlineEstimator {
     /// operations at the current wraps ([`Self::push_edge`]), as the steps that built the graph
     /// would have left them within a replay.
     fn defer_estimate(&mut self) {
-        self.estimate = Estimate::default();
+        self.estimate = Estimate::new(self.config.renewal_delay);
         self.estimate.push(Op::Defer);
         let mut nodes = 0;
         for e in 0..self.graph.edge_count() {

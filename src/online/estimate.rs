@@ -167,6 +167,16 @@ const RELINEARISE_ALLOWANCE: u64 = 1 << 20;
 /// spaced by the live work ([`RELINEARISE_WORK_PER_NONZERO`]).
 pub(crate) const HEADING_LAG: f64 = 1.0;
 
+impl Estimate {
+    /// An empty estimate whose factor's renewals are collected after `renewal_delay` times
+    /// the default work ([`crate::online::OnlineConfig::renewal_delay`]).
+    pub fn new(renewal_delay: f64) -> Self {
+        let mut e = Self::default();
+        with_factor!(&mut e.factors, both => both.set_renewal_delay(renewal_delay));
+        e
+    }
+}
+
 /// A loop closure's prediction by the headings' factor ([`Estimate::try_chord`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(crate) struct Prediction {

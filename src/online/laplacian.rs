@@ -304,6 +304,9 @@ pub(crate) struct Laplacian<const K: usize, const L: usize = 1> {
     dissection: Option<Arc<Dissection>>,
     /// Renewals from this many variables order by nested dissection ([`LARGE_FACTOR`]).
     dissect_from: usize,
+    /// The work a renewal is collected after, as a multiple of [`work_per_nonzero`]'s
+    /// ([`Self::set_renewal_delay`]).
+    renewal_delay: f64,
     /// Renewals completed.
     pub renewals: usize,
     /// Steps that waited for a renewal's builder.
@@ -328,6 +331,7 @@ impl<const K: usize, const L: usize> Default for Laplacian<K, L> {
             last_edge: None,
             dissection: None,
             dissect_from: LARGE_FACTOR,
+            renewal_delay: 1.0,
             deferred: false,
             stale_rhs: None,
             moved: [0.0; K],
@@ -669,6 +673,12 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         }
     }
 
+    /// Collect later renewals after `delay` times the default work ([`work_per_nonzero`]):
+    /// sooner below 1 (a caller whose edges arrive slowly enough for the builder).
+    pub fn set_renewal_delay(&mut self, delay: f64) {
+        self.renewal_delay = delay;
+    }
+
     /// Take the live factor's work since the last call into this system's count.
     fn step_work(&mut self) {
         self.work += self.factor.take_work();
@@ -781,7 +791,8 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         let finish = |(f, rows, tree): Building<K, L>| (f, rows.y, tree);
         let due = Due {
             step: self.steps + MIN_DELAY,
-            work: self.work + (expected_nnz * split * work_per_nonzero(n, L)) as u64,
+            work: self.work
+                + (expected_nnz * split * work_per_nonzero(n, L) * self.renewal_delay) as u64,
         };
         let worker = &mut self.worker;
         let renewal = Beside::start(worker, "so2lin-renew", build, apply, finish)?;
@@ -848,6 +859,7 @@ impl<const K: usize> Laplacian<K> {
             last_moved: (self.last_moved.0, scale.map(|_| self.last_moved.1[0])),
             dissection: self.dissection.clone(),
             dissect_from: self.dissect_from,
+            renewal_delay: self.renewal_delay,
             renewals: self.renewals,
             waits: self.waits,
             ..Laplacian::default()

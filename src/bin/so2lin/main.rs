@@ -363,6 +363,11 @@ enum Command {
         /// is reported [default: back to back, as fast as the steps go].
         #[arg(long, value_name = "HZ")]
         rate: Option<f64>,
+        /// Swap renewals of the estimate's factor in after this multiple of the default delay
+        /// (counted in work): below 1 for edges at a sensor's rate, which leaves the builder
+        /// time between them (back to back, steps would wait for it).
+        #[arg(long, value_name = "F", default_value_t = 1.0)]
+        renewal_delay: f64,
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
@@ -503,6 +508,7 @@ fn main() -> ExitCode {
             info_order,
             no_quarantine,
             rate,
+            renewal_delay,
             json,
         } => {
             let rate_ok = rate.is_none_or(|r| r.is_finite() && r > 0.0 && r <= 1e9);
@@ -518,6 +524,7 @@ fn main() -> ExitCode {
                 // The recorder reads the newest pose every step.
                 estimate_every_step: !matches!(estimate, stream::EstimateQuery::None)
                     || log.is_some(),
+                renewal_delay,
                 ..OnlineConfig::default()
             };
             if !step_time_ok {
