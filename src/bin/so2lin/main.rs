@@ -511,7 +511,8 @@ fn main() -> ExitCode {
             renewal_delay,
             json,
         } => {
-            let rate_ok = rate.is_none_or(|r| r.is_finite() && r > 0.0 && r <= 1e9);
+            // At least one edge every 10⁶ s (the log's longest step), at most 10⁹ a second.
+            let rate_ok = rate.is_none_or(|r| r.is_finite() && r > 1e-6 && r <= 1e9);
             // The log's clock follows the edges' pace unless given.
             let step_time = step_time.unwrap_or(match rate {
                 Some(hz) if rate_ok => hz.recip(),
@@ -527,14 +528,14 @@ fn main() -> ExitCode {
                 renewal_delay,
                 ..OnlineConfig::default()
             };
-            if !step_time_ok {
+            if !rate_ok {
                 Err(format!(
-                    "--step-time {step_time}: must be a number of seconds in [0, 10⁶)"
-                ))
-            } else if !rate_ok {
-                Err(format!(
-                    "--rate {}: must be a number of edges per second in (0, 10⁹]",
+                    "--rate {:?}: must be a number of edges per second in (10⁻⁶, 10⁹]",
                     rate.unwrap_or(f64::NAN)
+                ))
+            } else if !step_time_ok {
+                Err(format!(
+                    "--step-time {step_time:?}: must be a number of seconds in [0, 10⁶)"
                 ))
             } else {
                 stream::run(stream::StreamArgs {
