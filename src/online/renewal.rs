@@ -277,12 +277,18 @@ impl<S: Send + 'static, T, M: Send + 'static> Beside<S, T, M> {
 
     /// Queue a change for the builder; false when it is gone (the owner drops the renewal).
     pub fn send(&self, change: M) -> bool {
+        self.send_all(std::iter::once(change))
+    }
+
+    /// Queue changes for the builder, in order, under one lock and with one wake-up; false
+    /// when it is gone (the owner drops the renewal).
+    pub fn send_all(&self, changes: impl IntoIterator<Item = M>) -> bool {
         let (m, cv) = &*self.link;
         let Some(mut g) = lock(m) else { return false };
         if g.failed {
             return false;
         }
-        g.queue.push_back(change);
+        g.queue.extend(changes);
         let wake = g.idle;
         drop(g);
         if wake {
