@@ -217,8 +217,8 @@ pub struct OnlineConfig {
     /// factors in, whose loop closures cost less. Measured (`so2lin stream M3500.g2o --json
     /// --rate 1000`, robot order, the newest pose read after every step, three runs each,
     /// 2026-12-05): 1/6 took the p99 from 403–433 to 312–360 µs and the estimate's work from
-    /// 33.5 M to 21.1 M values, with no step waiting; back to back, every collection waited
-    /// and the worst step reached 2.3 ms. Counted in work, not time, so the answers do not
+    /// 33.5 M to 21.1 M values, with no step waiting (worst step 1.0–2.7 ms against 1.0–1.1);
+    /// back to back, every collection waited and the worst step reached 2.3 ms. Counted in work, not time, so the answers do not
     /// depend on the threads' timing; a log replays with the value it was recorded with.
     /// Finite and positive.
     pub renewal_delay: f64,
