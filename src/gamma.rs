@@ -56,6 +56,14 @@ impl GammaModel {
         Self::default()
     }
 
+    /// Room for `cycles` more cycles and `edges` more edges without growing its arrays.
+    pub fn reserve(&mut self, cycles: usize, edges: usize) {
+        self.mu.reserve(cycles);
+        self.rows.reserve(cycles);
+        self.acc.reserve(cycles);
+        self.edge_cycles.reserve(edges);
+    }
+
     /// Build the model of a whole basis: `σ²` and `δ` per edge, cycles in basis order.
     pub fn from_cycles(cycles: &[Cycle], sigma2: &[f64], delta: &[f64]) -> Self {
         let mut m = Self::new();

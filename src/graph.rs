@@ -481,6 +481,15 @@ pub struct PoseGraph {
 }
 
 impl PoseGraph {
+    /// Room for `nodes` more nodes and `edges` more edges without growing its arrays (see
+    /// [`crate::online::OnlineEstimator::reserve`]: a growing array is copied in one step).
+    pub fn reserve(&mut self, nodes: usize, edges: usize) {
+        self.nodes.reserve(nodes);
+        self.index.reserve(nodes);
+        self.edges.reserve(edges);
+        self.ends.reserve(edges);
+    }
+
     /// An empty graph.
     pub fn new() -> Self {
         Self::default()
@@ -685,6 +694,12 @@ pub struct UnionFind {
 }
 
 impl UnionFind {
+    /// Room for `additional` more sets without growing.
+    pub fn reserve(&mut self, additional: usize) {
+        self.parent.reserve(additional);
+        self.size.reserve(additional);
+    }
+
     /// `n` singleton sets.
     pub fn new(n: usize) -> Self {
         Self {

@@ -593,6 +593,10 @@ pub struct Replay {
 pub fn replay(log: &LogContents, verify: bool) -> Result<Replay, LogError> {
     let config = log.config()?;
     let mut est = OnlineEstimator::new(config).map_err(|e| LogError::Format(e.to_string()))?;
+    // The log's size is known, as the stream's file was (`OnlineEstimator::reserve`).
+    let nodes: std::collections::BTreeSet<_> =
+        log.edges.iter().flat_map(|e| [e.from(), e.to()]).collect();
+    est.reserve(nodes.len(), log.edges.len());
     let mut latency_ns = Vec::with_capacity(log.edges.len());
     let mut divergence = None;
     for (k, (edge, recorded)) in log.edges.iter().zip(&log.steps).enumerate() {

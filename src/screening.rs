@@ -653,6 +653,14 @@ impl Screener {
         }
     }
 
+    /// Room for `cycles` more cycles without growing its arrays (the factor of P_UU aside:
+    /// its renewals rebuild it).
+    pub fn reserve(&mut self, cycles: usize) {
+        self.intervals.reserve(cycles);
+        self.determined.reserve(cycles);
+        self.inconsistent.reserve(cycles);
+    }
+
     /// Register cycles up to `model.len()` (undetermined, no candidates yet).
     pub fn grow(&mut self, cycles: usize) {
         let blank = Interval {

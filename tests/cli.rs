@@ -405,6 +405,41 @@ fn stream_json_reports_latency_and_matches_screen() {
     assert!(text.contains("p99") && text.contains("cycle"), "{text}");
 }
 
+/// `stream` reserves the file's counts before the first step unless `--no-reserve`: the
+/// answers and the counted work are the same either way, and the run says which it was.
+#[test]
+fn stream_reserves_the_files_counts_unless_told_not_to() {
+    let g = simulated("stream_reserve.g2o", &["--poses", "150", "--seed", "4"]);
+    let roomy = run_json(["stream".as_ref(), "--json".as_ref(), g.as_os_str()]);
+    let plain = run_json([
+        "stream".as_ref(),
+        "--json".as_ref(),
+        "--no-reserve".as_ref(),
+        g.as_os_str(),
+    ]);
+    assert_eq!(roomy["reserved"], true, "{roomy}");
+    assert_eq!(plain["reserved"], false, "{plain}");
+    for key in [
+        "steps",
+        "cycles",
+        "determined",
+        "hypotheses",
+        "work_per_step",
+    ] {
+        assert_eq!(roomy[key], plain[key], "{key}");
+    }
+    let text = so2lin()
+        .args(["stream", "--no-reserve"])
+        .arg(&g)
+        .output()
+        .unwrap();
+    assert!(
+        String::from_utf8_lossy(&text.stdout).contains("nothing reserved"),
+        "{}",
+        String::from_utf8_lossy(&text.stdout)
+    );
+}
+
 /// `stream --rate HZ` feeds the edges as a robot's front end would, one every 1/HZ seconds: the
 /// run lasts at least that long (sleeps never end early), reports its rate and how far it fell
 /// behind, and answers exactly as back to back (the steps, not the clock, decide). A rate that

@@ -94,6 +94,11 @@ impl Dijkstra {
         d
     }
 
+    /// Room for `additional` more nodes than it has now without growing.
+    pub(crate) fn reserve(&mut self, additional: usize) {
+        self.node.reserve(additional);
+    }
+
     fn grow(&mut self, n: usize) {
         if self.node.len() < n {
             self.node.resize(n, NodeState::default());

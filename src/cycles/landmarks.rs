@@ -98,6 +98,12 @@ impl Landmarks {
         }
     }
 
+    /// Room for `additional` more nodes' distances without growing (address space only until
+    /// landmarks are wanted).
+    pub fn reserve(&mut self, additional: usize) {
+        self.dist.reserve(additional * MAX_LANDMARKS);
+    }
+
     fn row(&self, v: usize) -> &[f64] {
         &self.dist[v * MAX_LANDMARKS..v * MAX_LANDMARKS + self.count]
     }

@@ -395,6 +395,16 @@ impl IncrementalBasis {
         Self::default()
     }
 
+    /// Room for `nodes` more nodes and `edges` more edges without growing its arrays.
+    pub fn reserve(&mut self, nodes: usize, edges: usize) {
+        self.adj.reserve(nodes);
+        self.components.reserve(nodes);
+        self.search.reserve(nodes);
+        self.landmarks.reserve(nodes);
+        self.ends.reserve(edges);
+        self.sigma2.reserve(edges);
+    }
+
     /// Make sure nodes `0..n` exist.
     pub fn reserve_nodes(&mut self, n: usize) {
         while self.adj.len() < n {

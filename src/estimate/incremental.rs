@@ -309,6 +309,26 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         self.diag.len()
     }
 
+    /// Room for `additional` more variables without growing its arrays.
+    pub fn reserve(&mut self, additional: usize) {
+        let n = self.diag.len() + additional;
+        // Variable ids index `pos_of`: room up to the same count.
+        self.pos_of.reserve(n.saturating_sub(self.pos_of.len()));
+        self.var_at.reserve(additional);
+        self.diag.reserve(additional);
+        self.rows.reserve(additional);
+        self.d.reserve(additional);
+        self.x.reserve(n.saturating_sub(self.x.len()));
+    }
+
+    /// How many variables it holds without growing its arrays.
+    pub fn capacity(&self) -> usize {
+        (self.var_at.capacity())
+            .min(self.diag.capacity())
+            .min(self.rows.capacity())
+            .min(self.d.capacity())
+    }
+
     /// Values of R (entries times lanes) visited by the row updates since the last call (then
     /// zero): a deterministic measure of the time this factor's updates took (a rotation or
     /// forward solve costs in proportion to the entries of the rows on its path).

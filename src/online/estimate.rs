@@ -279,8 +279,12 @@ impl Factors {
             return;
         };
         let scale = ratio.map_or(1.0, f64::sqrt);
+        let (nodes, edges) = both.room();
+        let mut wide = both.widen([1.0, scale]);
+        // The room reserved stays (a widened copy is exactly as long as the shared factor).
+        wide.reserve(nodes, edges);
         *self = Factors::Lanes {
-            both: Box::new(both.widen([1.0, scale])),
+            both: Box::new(wide),
         };
     }
 
@@ -530,6 +534,12 @@ impl Estimate {
             // A renewal in progress takes these rows too: its bound counts from here.
             self.moved_at_renewal = 0.0;
         }
+    }
+
+    /// Room for `nodes` more nodes and `edges` more edges without growing the factor's arrays
+    /// ([`crate::online::OnlineEstimator::reserve`]).
+    pub fn reserve(&mut self, nodes: usize, edges: usize) {
+        with_factor!(&mut self.factors, both => both.reserve(nodes, edges));
     }
 
     /// Orientation of node v (O(1) for the newest).

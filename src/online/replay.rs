@@ -40,6 +40,11 @@ pub(crate) struct Paths {
 }
 
 impl Paths {
+    /// Room for `inputs` more inputs without growing.
+    pub fn reserve(&mut self, inputs: usize) {
+        self.entered.reserve(inputs);
+    }
+
     /// Input `input` entered the graph as edge `edge` when `at` arrivals had been given.
     pub fn entered(&mut self, input: usize, edge: usize, at: usize) {
         if self.entered.len() <= input {

@@ -368,6 +368,11 @@ enum Command {
         /// time between them (back to back, steps would wait for it).
         #[arg(long, value_name = "F", default_value_t = 1.0)]
         renewal_delay: f64,
+        /// Do not reserve the file's node and edge counts before the first step (as a front
+        /// end that does not know its mission's size): the estimator's arrays then grow as
+        /// edges arrive, each growth a copy in one step.
+        #[arg(long)]
+        no_reserve: bool,
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
@@ -509,6 +514,7 @@ fn main() -> ExitCode {
             no_quarantine,
             rate,
             renewal_delay,
+            no_reserve,
             json,
         } => {
             // At least one edge every 10⁶ s (the log's longest step), at most 10⁹ a second.
@@ -552,6 +558,7 @@ fn main() -> ExitCode {
                     },
                     step_time_ns: (step_time * 1e9) as u64,
                     rate,
+                    reserve: !no_reserve,
                     json,
                 })
             }

@@ -48,6 +48,8 @@ pub struct StreamArgs<'a> {
     pub step_time_ns: u64,
     /// Edges per second, as a robot's front end sends them (None: back to back).
     pub rate: Option<f64>,
+    /// Reserve the file's node and edge counts before the first step.
+    pub reserve: bool,
     pub json: bool,
 }
 
@@ -129,6 +131,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     // command.
     let (graph, _) = crate::load(args.file, args.info_order)?;
     let edges = graph.edges().to_vec();
+    let nodes = graph.node_count();
     drop(graph);
     // File index of the k-th edge streamed (rejected edges are reported in file order).
     let file_index: Vec<usize> = match args.edge_order {
@@ -136,6 +139,11 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         EdgeOrder::File => (0..edges.len()).collect(),
     };
     let edges: Vec<_> = file_index.iter().map(|&i| edges[i]).collect();
+    // The file's size is known: its arrays are reserved before the first step, as a front end
+    // that knows its mission's size would (`OnlineEstimator::reserve`).
+    if args.reserve {
+        est.reserve(nodes, edges.len());
+    }
     let mut recorder = match args.log {
         Some(path) => {
             let source = args.file.display().to_string();
@@ -255,6 +263,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "edge_order": args.edge_order,
             "estimate": args.estimate,
             "rate_hz": args.rate,
+            "reserved": args.reserve,
             "max_lag_ms": args.rate.map(|_| max_lag.as_secs_f64() * 1e3),
             "estimate_renewals": c.estimate_renewals,
             "renewal_waits": c.renewal_waits,
@@ -319,7 +328,12 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         ),
         None => "edges back to back".to_owned(),
     };
-    println!("latency per step in µs ({order}, {read}, {pace}):");
+    let room = if args.reserve {
+        "the file's counts reserved"
+    } else {
+        "nothing reserved"
+    };
+    println!("latency per step in µs ({order}, {read}, {pace}, {room}):");
     println!("                              p50       p90       p99     worst      mean");
     for (name, l) in &lat {
         println!(
