@@ -35,7 +35,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // Room for the whole mission, reserved before the first edge (as a real-time loop
     // preallocates): no step then copies a growing array. A front end that does not know its
     // mission's size reserves a bound on it; the room costs address space until it is used.
-    est.reserve(world.graph.node_count(), world.graph.edge_count());
+    est.reserve(world.graph.node_count(), world.graph.edge_count())?;
     println!(
         "robot: {poses} poses, seed {seed}, σ_θ = {} rad; screening family-wise at α = {}",
         config.sigma_theta, online.screening.alpha

@@ -57,11 +57,16 @@ impl GammaModel {
     }
 
     /// Room for `cycles` more cycles and `edges` more edges without growing its arrays.
-    pub fn reserve(&mut self, cycles: usize, edges: usize) {
-        self.mu.reserve(cycles);
-        self.rows.reserve(cycles);
-        self.acc.reserve(cycles);
-        self.edge_cycles.reserve(edges);
+    pub fn try_reserve(
+        &mut self,
+        cycles: usize,
+        edges: usize,
+    ) -> Result<(), std::collections::TryReserveError> {
+        self.mu.try_reserve(cycles)?;
+        self.rows.try_reserve(cycles)?;
+        self.acc.try_reserve(cycles)?;
+        self.edge_cycles.try_reserve(edges)?;
+        Ok(())
     }
 
     /// Build the model of a whole basis: `σ²` and `δ` per edge, cycles in basis order.

@@ -483,11 +483,16 @@ pub struct PoseGraph {
 impl PoseGraph {
     /// Room for `nodes` more nodes and `edges` more edges without growing its arrays (see
     /// [`crate::online::OnlineEstimator::reserve`]: a growing array is copied in one step).
-    pub fn reserve(&mut self, nodes: usize, edges: usize) {
-        self.nodes.reserve(nodes);
-        self.index.reserve(nodes);
-        self.edges.reserve(edges);
-        self.ends.reserve(edges);
+    pub fn try_reserve(
+        &mut self,
+        nodes: usize,
+        edges: usize,
+    ) -> Result<(), std::collections::TryReserveError> {
+        self.nodes.try_reserve(nodes)?;
+        self.index.try_reserve(nodes)?;
+        self.edges.try_reserve(edges)?;
+        self.ends.try_reserve(edges)?;
+        Ok(())
     }
 
     /// An empty graph.
@@ -695,9 +700,13 @@ pub struct UnionFind {
 
 impl UnionFind {
     /// Room for `additional` more sets without growing.
-    pub fn reserve(&mut self, additional: usize) {
-        self.parent.reserve(additional);
-        self.size.reserve(additional);
+    pub fn try_reserve(
+        &mut self,
+        additional: usize,
+    ) -> Result<(), std::collections::TryReserveError> {
+        self.parent.try_reserve(additional)?;
+        self.size.try_reserve(additional)?;
+        Ok(())
     }
 
     /// `n` singleton sets.

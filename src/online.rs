@@ -247,6 +247,15 @@ pub enum OnlineError {
     /// More edges than the estimator indexes (2³² − 1).
     #[error("too many edges: the estimator indexes at most {0}")]
     Capacity(usize),
+    /// [`OnlineEstimator::reserve`]: the allocator refused the room asked for (nothing else
+    /// changed; the estimator works on without it).
+    #[error("cannot reserve room for {nodes} nodes and {edges} edges: the allocator refused")]
+    Reserve {
+        /// Nodes asked for.
+        nodes: usize,
+        /// Edges asked for.
+        edges: usize,
+    },
     /// Bad settings.
     #[error(transparent)]
     Config(#[from] ConfigError),
@@ -503,26 +512,37 @@ impl OnlineEstimator {
     /// it (the system maps the pages as they are first written, a few at a step). The answers
     /// are the same bits with or without it. `so2lin stream` reserves the file's counts unless
     /// `--no-reserve`.
-    pub fn reserve(&mut self, nodes: usize, edges: usize) {
+    ///
+    /// Errors: [`OnlineError::Capacity`] for more edges than the estimator indexes, and
+    /// [`OnlineError::Reserve`] when the allocator refuses the room; either way the estimator
+    /// is otherwise unchanged and works on without it.
+    pub fn reserve(&mut self, nodes: usize, edges: usize) -> Result<(), OnlineError> {
+        if edges > u32::MAX as usize {
+            return Err(OnlineError::Capacity(u32::MAX as usize));
+        }
         // A connected graph has edges − nodes + 1 cycles; more edges between fewer nodes
         // grow the per-cycle arrays later.
         let cycles = edges.saturating_sub(nodes) + 1;
-        self.graph.reserve(nodes, edges);
-        self.sigma2.reserve(edges);
-        self.delta.reserve(edges);
-        self.noise.reserve(edges);
-        self.wrap.reserve(edges);
-        self.chord_cycle.reserve(edges);
-        self.users.reserve(edges);
-        self.input_of.reserve(edges);
-        self.paths.reserve(edges);
-        self.theta.reserve(nodes);
-        self.basis.reserve(nodes, edges);
-        self.cycles.reserve(cycles);
-        self.gamma.reserve(cycles);
-        self.model.reserve(cycles, edges);
-        self.screener.reserve(cycles);
-        self.estimate.reserve(nodes, edges);
+        let mut room = || -> Result<(), std::collections::TryReserveError> {
+            self.graph.try_reserve(nodes, edges)?;
+            self.sigma2.try_reserve(edges)?;
+            self.delta.try_reserve(edges)?;
+            self.noise.try_reserve(edges)?;
+            self.wrap.try_reserve(edges)?;
+            self.chord_cycle.try_reserve(edges)?;
+            self.users.try_reserve(edges)?;
+            self.input_of.try_reserve(edges)?;
+            self.paths.try_reserve(edges)?;
+            self.theta.try_reserve(nodes)?;
+            self.basis.try_reserve(nodes, edges)?;
+            self.cycles.try_reserve(cycles)?;
+            self.gamma.try_reserve(cycles)?;
+            self.model.try_reserve(cycles, edges)?;
+            self.screener.try_reserve(cycles)?;
+            self.estimate.try_reserve(nodes, edges)
+        };
+        // A refusal leaves some arrays with more room than before, nothing else changed.
+        room().map_err(|_| OnlineError::Reserve { nodes, edges })
     }
 
     /// Add an edge (validated by construction). Edges to unseen nodes create them; an edge
@@ -964,7 +984,9 @@ mod tests {
         let edges = robot_order(w.graph.edges());
         let mut roomy = OnlineEstimator::new(OnlineConfig::default()).expect("default config");
         let mut plain = OnlineEstimator::new(OnlineConfig::default()).expect("default config");
-        roomy.reserve(w.graph.node_count(), edges.len());
+        roomy
+            .reserve(w.graph.node_count(), edges.len())
+            .expect("room for a small world");
         let arrays = |e: &OnlineEstimator| {
             [
                 e.graph.edges().as_ptr() as usize,
@@ -985,5 +1007,31 @@ mod tests {
         assert_eq!(arrays(&roomy), before, "a reserved array moved");
         assert!(roomy.counters().estimate_renewals >= 2);
         assert_eq!(roomy.poses().ok(), plain.poses().ok());
+    }
+
+    /// Room that cannot be had is a typed error, and the estimator answers on as before.
+    #[test]
+    fn room_refused_is_an_error_and_changes_nothing() {
+        let w = simulate(&SimConfig::new(300, 2)).expect("a world");
+        let edges = robot_order(w.graph.edges());
+        let mut refused = OnlineEstimator::new(OnlineConfig::default()).expect("default config");
+        let mut plain = OnlineEstimator::new(OnlineConfig::default()).expect("default config");
+        for (k, e) in edges.iter().enumerate() {
+            if k == 100 {
+                assert!(matches!(
+                    refused.reserve(10, u32::MAX as usize + 1),
+                    Err(OnlineError::Capacity(_))
+                ));
+                let err = refused
+                    .reserve(usize::MAX / 2, 10)
+                    .expect_err("too much room");
+                assert!(matches!(err, OnlineError::Reserve { .. }), "{err}");
+                assert!(err.to_string().contains("cannot reserve room"), "{err}");
+            }
+            refused.add_edge(*e).expect("a valid edge");
+            plain.add_edge(*e).expect("a valid edge");
+            assert_eq!(refused.newest().ok(), plain.newest().ok());
+        }
+        assert_eq!(refused.poses().ok(), plain.poses().ok());
     }
 }

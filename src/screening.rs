@@ -655,10 +655,11 @@ impl Screener {
 
     /// Room for `cycles` more cycles without growing its arrays (the factor of P_UU aside:
     /// its renewals rebuild it).
-    pub fn reserve(&mut self, cycles: usize) {
-        self.intervals.reserve(cycles);
-        self.determined.reserve(cycles);
-        self.inconsistent.reserve(cycles);
+    pub fn try_reserve(&mut self, cycles: usize) -> Result<(), std::collections::TryReserveError> {
+        self.intervals.try_reserve(cycles)?;
+        self.determined.try_reserve(cycles)?;
+        self.inconsistent.try_reserve(cycles)?;
+        Ok(())
     }
 
     /// Register cycles up to `model.len()` (undetermined, no candidates yet).

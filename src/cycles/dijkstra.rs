@@ -95,8 +95,12 @@ impl Dijkstra {
     }
 
     /// Room for `additional` more nodes than it has now without growing.
-    pub(crate) fn reserve(&mut self, additional: usize) {
-        self.node.reserve(additional);
+    pub(crate) fn try_reserve(
+        &mut self,
+        additional: usize,
+    ) -> Result<(), std::collections::TryReserveError> {
+        self.node.try_reserve(additional)?;
+        Ok(())
     }
 
     fn grow(&mut self, n: usize) {

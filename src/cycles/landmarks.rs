@@ -100,8 +100,12 @@ impl Landmarks {
 
     /// Room for `additional` more nodes' distances without growing (address space only until
     /// landmarks are wanted).
-    pub fn reserve(&mut self, additional: usize) {
-        self.dist.reserve(additional * MAX_LANDMARKS);
+    pub fn try_reserve(
+        &mut self,
+        additional: usize,
+    ) -> Result<(), std::collections::TryReserveError> {
+        self.dist.try_reserve(additional * MAX_LANDMARKS)?;
+        Ok(())
     }
 
     fn row(&self, v: usize) -> &[f64] {

@@ -396,13 +396,18 @@ impl IncrementalBasis {
     }
 
     /// Room for `nodes` more nodes and `edges` more edges without growing its arrays.
-    pub fn reserve(&mut self, nodes: usize, edges: usize) {
-        self.adj.reserve(nodes);
-        self.components.reserve(nodes);
-        self.search.reserve(nodes);
-        self.landmarks.reserve(nodes);
-        self.ends.reserve(edges);
-        self.sigma2.reserve(edges);
+    pub fn try_reserve(
+        &mut self,
+        nodes: usize,
+        edges: usize,
+    ) -> Result<(), std::collections::TryReserveError> {
+        self.adj.try_reserve(nodes)?;
+        self.components.try_reserve(nodes)?;
+        self.search.try_reserve(nodes)?;
+        self.landmarks.try_reserve(nodes)?;
+        self.ends.try_reserve(edges)?;
+        self.sigma2.try_reserve(edges)?;
+        Ok(())
     }
 
     /// Make sure nodes `0..n` exist.

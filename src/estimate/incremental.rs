@@ -310,15 +310,20 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     }
 
     /// Room for `additional` more variables without growing its arrays.
-    pub fn reserve(&mut self, additional: usize) {
+    pub fn try_reserve(
+        &mut self,
+        additional: usize,
+    ) -> Result<(), std::collections::TryReserveError> {
         let n = self.diag.len() + additional;
         // Variable ids index `pos_of`: room up to the same count.
-        self.pos_of.reserve(n.saturating_sub(self.pos_of.len()));
-        self.var_at.reserve(additional);
-        self.diag.reserve(additional);
-        self.rows.reserve(additional);
-        self.d.reserve(additional);
-        self.x.reserve(n.saturating_sub(self.x.len()));
+        self.pos_of
+            .try_reserve(n.saturating_sub(self.pos_of.len()))?;
+        self.var_at.try_reserve(additional)?;
+        self.diag.try_reserve(additional)?;
+        self.rows.try_reserve(additional)?;
+        self.d.try_reserve(additional)?;
+        self.x.try_reserve(n.saturating_sub(self.x.len()))?;
+        Ok(())
     }
 
     /// How many variables it holds without growing its arrays.

@@ -282,7 +282,8 @@ impl Factors {
         let (nodes, edges) = both.room();
         let mut wide = both.widen([1.0, scale]);
         // The room reserved stays (a widened copy is exactly as long as the shared factor).
-        wide.reserve(nodes, edges);
+        // (Refused, the widened factor grows as it would have.)
+        let _ = wide.try_reserve(nodes, edges);
         *self = Factors::Lanes {
             both: Box::new(wide),
         };
@@ -538,8 +539,13 @@ impl Estimate {
 
     /// Room for `nodes` more nodes and `edges` more edges without growing the factor's arrays
     /// ([`crate::online::OnlineEstimator::reserve`]).
-    pub fn reserve(&mut self, nodes: usize, edges: usize) {
-        with_factor!(&mut self.factors, both => both.reserve(nodes, edges));
+    pub fn try_reserve(
+        &mut self,
+        nodes: usize,
+        edges: usize,
+    ) -> Result<(), std::collections::TryReserveError> {
+        with_factor!(&mut self.factors, both => both.try_reserve(nodes, edges))?;
+        Ok(())
     }
 
     /// Orientation of node v (O(1) for the newest).

@@ -41,8 +41,9 @@ pub(crate) struct Paths {
 
 impl Paths {
     /// Room for `inputs` more inputs without growing.
-    pub fn reserve(&mut self, inputs: usize) {
-        self.entered.reserve(inputs);
+    pub fn try_reserve(&mut self, inputs: usize) -> Result<(), std::collections::TryReserveError> {
+        self.entered.try_reserve(inputs)?;
+        Ok(())
     }
 
     /// Input `input` entered the graph as edge `edge` when `at` arrivals had been given.

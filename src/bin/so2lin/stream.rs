@@ -142,7 +142,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     // The file's size is known: its arrays are reserved before the first step, as a front end
     // that knows its mission's size would (`OnlineEstimator::reserve`).
     if args.reserve {
-        est.reserve(nodes, edges.len());
+        est.reserve(nodes, edges.len()).map_err(|e| e.to_string())?;
     }
     let mut recorder = match args.log {
         Some(path) => {
