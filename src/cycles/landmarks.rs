@@ -104,7 +104,8 @@ impl Landmarks {
         &mut self,
         additional: usize,
     ) -> Result<(), std::collections::TryReserveError> {
-        self.dist.try_reserve(additional * MAX_LANDMARKS)?;
+        self.dist
+            .try_reserve(additional.saturating_mul(MAX_LANDMARKS))?;
         Ok(())
     }
 

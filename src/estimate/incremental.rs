@@ -314,7 +314,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         &mut self,
         additional: usize,
     ) -> Result<(), std::collections::TryReserveError> {
-        let n = self.diag.len() + additional;
+        let n = self.diag.len().saturating_add(additional);
         // Variable ids index `pos_of`: room up to the same count.
         self.pos_of
             .try_reserve(n.saturating_sub(self.pos_of.len()))?;
