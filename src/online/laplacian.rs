@@ -792,9 +792,10 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         // renewal's fill per row), not with the live factor's fill, which is what grows
         // without bound between renewals.
         let expected_nnz = self.fill_after_renewal.max(2.0) * n as f64;
-        // The renewed factor gets the live one's room (reserved on the builder, so that the
-        // first node after the swap does not copy the factor's arrays in a step).
+        // The renewed factor and right-hand sides get the live ones' room (reserved on the
+        // builder, so that the first node or edge after the swap does not copy them in a step).
         let room = self.factor.capacity();
+        let y_room = self.rows.y.capacity();
         let order = if n >= self.dissect_from {
             BuildOrder::Dissected(self.dissection.clone().filter(|t| !t.stale(n)))
         } else {
@@ -813,6 +814,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
             let (mut f, tree) = build(&rows, &prior, n, Some(newest), order);
             // (Refused, the renewed factor grows as it would have.)
             let _ = f.try_reserve(room.saturating_sub(f.len()));
+            let _ = rows.y.try_reserve(y_room.saturating_sub(rows.y.len()));
             Some((f, rows, tree))
         };
         // Keep up with the live system until collected.
@@ -888,8 +890,8 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         if let Some(tree) = tree {
             self.dissection = Some(Arc::new(tree));
         }
-        // Into the live array (the same length): its room stays, and nothing is allocated.
-        self.rows.y.copy_from_slice(&y);
+        // The builder's array, with the live one's room.
+        self.rows.y = y;
         self.install(fresh);
         self.renewals += 1;
         true
@@ -1061,9 +1063,9 @@ mod tests {
     }
 
     /// Room reserved for the nodes and edges to come: the rows' arrays never move, and every
-    /// renewal's factor comes with the live one's room (built on the builder), so no step
-    /// copies an array to grow it. Without the builder's reserve, the swapped-in factor holds
-    /// its own count rounded up to a power of two (2 048 here), less than the room reserved.
+    /// renewal's factor and right-hand sides come with the live ones' room (reserved on the
+    /// builder), so no step copies an array to grow it. Without the builder's reserve, the
+    /// swapped-in arrays hold their own count rounded up to a power of two, less than the room.
     #[test]
     fn reserved_room_outlives_renewals() {
         let n = 2_000;
@@ -1073,7 +1075,6 @@ mod tests {
             (
                 l.rows.ends.as_ptr(),
                 l.rows.sqrt_w.as_ptr(),
-                l.rows.y.as_ptr(),
                 l.prior.as_ptr(),
             )
         };
@@ -1089,6 +1090,8 @@ mod tests {
         }
         assert!(l.renewals >= 2, "renewals {}", l.renewals);
         assert_eq!(rows(&l), before, "a reserved array grew");
+        // The right-hand sides come from the builder, with the room.
+        assert!(l.rows.y.capacity() >= 6 * n, "{}", l.rows.y.capacity());
         assert!(
             l.factor.capacity() >= 3 * n,
             "the renewed factor holds {} variables without growing",
