@@ -219,9 +219,10 @@ pub struct OnlineConfig {
     /// --rate 1000`, robot order, the newest pose read after every step, three runs each,
     /// 2026-12-05): 1/6 took the p99 from 403–433 to 312–360 µs and the estimate's work from
     /// 33.5 M to 21.1 M values, with no step waiting (worst step 1.0–2.7 ms against 1.0–1.1);
-    /// back to back, every collection waited and the worst step reached 2.3 ms. Counted in work, not time, so the answers do not
-    /// depend on the threads' timing; a log replays with the value it was recorded with.
-    /// Finite and positive.
+    /// back to back, every collection waited and the worst step reached 2.3 ms (delays of 1/2
+    /// and 1/3 waited as well: `benches/MEASUREMENTS.md`, twenty-fourth session). Counted in
+    /// work, not time, so the answers do not depend on the threads' timing; a log replays with
+    /// the value it was recorded with. Finite and positive.
     pub renewal_delay: f64,
 }
 
@@ -393,6 +394,9 @@ pub struct OnlineEstimator {
     /// Renewals of the P_UU factor expected to cost at most this much work are built in the
     /// step ([`reorder::REORDER_IN_STEP_WORK`]; tests set 0 or ∞ to take one path only).
     reorder_in_step_work: f64,
+    /// The node and edge counts the caller reserved room up to ([`Self::reserve`]): a
+    /// rebuild's replacement gets the same room.
+    room_for: (usize, usize),
 }
 
 /// Cycles whose conditional sd of γ is below this feed the angle noise scale: their nearest
@@ -468,6 +472,7 @@ impl OnlineEstimator {
             checkpoint_interval: checkpoint::MIN_INTERVAL,
             doubtful_checkpoints: true,
             reorder_in_step_work: reorder::REORDER_IN_STEP_WORK,
+            room_for: (0, 0),
         })
     }
 
@@ -510,8 +515,9 @@ impl OnlineEstimator {
     /// mission's size (or a bound on it) reserves it once, before the first edge, as a
     /// real-time loop preallocates: the room costs address space, not memory, until edges fill
     /// it (the system maps the pages as they are first written, a few at a step). The answers
-    /// are the same bits with or without it. `so2lin stream` reserves the file's counts unless
-    /// `--no-reserve`.
+    /// are the same bits with or without it, and an estimator that replaces this one in a
+    /// rebuild (a replay after an eviction) gets the same room. `so2lin stream` reserves the
+    /// file's counts unless `--no-reserve`.
     ///
     /// Errors: [`OnlineError::Capacity`] for more edges than the estimator indexes, and
     /// [`OnlineError::Reserve`] when the allocator refuses the room; either way the estimator
@@ -542,7 +548,26 @@ impl OnlineEstimator {
             self.estimate.try_reserve(nodes, edges)
         };
         // A refusal leaves some arrays with more room than before, nothing else changed.
-        room().map_err(|_| OnlineError::Reserve { nodes, edges })
+        room().map_err(|_| OnlineError::Reserve { nodes, edges })?;
+        let (n, m) = self.room_for;
+        self.room_for = (
+            n.max(self.graph.node_count().saturating_add(nodes)),
+            m.max(self.graph.edge_count().saturating_add(edges)),
+        );
+        Ok(())
+    }
+
+    /// Room up to `(nodes, edges)` in all ([`Self::reserve`]), if any was asked for: an
+    /// estimator that replaces this one in a rebuild keeps the caller's room.
+    pub(super) fn keep_room(&mut self, (nodes, edges): (usize, usize)) {
+        if (nodes, edges) == (0, 0) {
+            return;
+        }
+        // Refused, the arrays grow as they would have.
+        let _ = self.reserve(
+            nodes.saturating_sub(self.graph.node_count()),
+            edges.saturating_sub(self.graph.edge_count()),
+        );
     }
 
     /// Add an edge (validated by construction). Edges to unseen nodes create them; an edge
@@ -976,37 +1001,100 @@ mod tests {
     use super::*;
     use crate::sim::{SimConfig, simulate};
 
+    /// Stream `edges` through an estimator prepared by `setup` and a plain one side by side:
+    /// the newest pose after every step, the quarantine and the final poses are the same bits.
+    /// `check(k, est)` looks at the prepared one before edge k and once more at the end
+    /// (k = edges.len()).
+    fn beside_a_plain_one(
+        edges: &[Edge],
+        setup: impl FnOnce(&mut OnlineEstimator),
+        mut check: impl FnMut(usize, &mut OnlineEstimator),
+    ) {
+        let mut est = OnlineEstimator::new(OnlineConfig::default()).expect("default config");
+        let mut plain = OnlineEstimator::new(OnlineConfig::default()).expect("default config");
+        setup(&mut est);
+        for (k, e) in edges.iter().enumerate() {
+            check(k, &mut est);
+            est.add_edge(*e).expect("a valid edge");
+            plain.add_edge(*e).expect("a valid edge");
+            assert_eq!(est.newest().ok(), plain.newest().ok(), "step {k}");
+        }
+        check(edges.len(), &mut est);
+        assert_eq!(est.rejected(), plain.rejected());
+        assert_eq!(est.poses().ok(), plain.poses().ok());
+    }
+
+    /// The arrays that grow with every edge (a few of them).
+    fn arrays(e: &OnlineEstimator) -> [usize; 7] {
+        [
+            e.graph.edges().as_ptr() as usize,
+            e.sigma2.as_ptr() as usize,
+            e.noise.as_ptr() as usize,
+            e.wrap.as_ptr() as usize,
+            e.users.as_ptr() as usize,
+            e.input_of.as_ptr() as usize,
+            e.gamma.as_ptr() as usize,
+        ]
+    }
+
     /// With room reserved for a whole stream, the arrays that grow with every edge never move
     /// (no step copies one), and the answers are the same bits as without the room.
     #[test]
     fn reserved_arrays_do_not_move() {
         let w = simulate(&SimConfig::new(2_500, 5)).expect("a world");
         let edges = robot_order(w.graph.edges());
-        let mut roomy = OnlineEstimator::new(OnlineConfig::default()).expect("default config");
-        let mut plain = OnlineEstimator::new(OnlineConfig::default()).expect("default config");
-        roomy
-            .reserve(w.graph.node_count(), edges.len())
-            .expect("room for a small world");
-        let arrays = |e: &OnlineEstimator| {
-            [
-                e.graph.edges().as_ptr() as usize,
-                e.sigma2.as_ptr() as usize,
-                e.noise.as_ptr() as usize,
-                e.wrap.as_ptr() as usize,
-                e.users.as_ptr() as usize,
-                e.input_of.as_ptr() as usize,
-                e.gamma.as_ptr() as usize,
-            ]
+        let room = |e: &mut OnlineEstimator| {
+            e.reserve(w.graph.node_count(), edges.len())
+                .expect("room for a small world")
         };
-        let before = arrays(&roomy);
-        for e in &edges {
-            roomy.add_edge(*e).expect("a valid edge");
-            plain.add_edge(*e).expect("a valid edge");
-            assert_eq!(roomy.newest().ok(), plain.newest().ok());
-        }
-        assert_eq!(arrays(&roomy), before, "a reserved array moved");
-        assert!(roomy.counters().estimate_renewals >= 2);
-        assert_eq!(roomy.poses().ok(), plain.poses().ok());
+        let mut before = None;
+        beside_a_plain_one(&edges, room, |k, est| {
+            let now = arrays(est);
+            assert_eq!(
+                *before.get_or_insert(now),
+                now,
+                "a reserved array moved at {k}"
+            );
+            if k == edges.len() {
+                assert!(est.counters().estimate_renewals >= 2);
+            }
+        });
+    }
+
+    /// An estimator that replaces this one in a rebuild (a stream with false loop closures:
+    /// the re-test from the start, evictions) keeps the caller's room: between rebuilds no
+    /// array moves, and the answers are the same bits as without the room.
+    #[test]
+    fn the_room_outlives_rebuilds() {
+        use crate::sim::{OutlierConfig, OutlierKind, inject_outliers};
+        let w = simulate(&SimConfig::new(1_500, 11)).expect("a world");
+        // Rebuilt at arrivals 383 and 438: the second replaces the estimator before its arrays
+        // pass 512, 1 024 and 2 048 edges (without the room kept, they moved at 519).
+        let outliers = OutlierConfig {
+            count: 50,
+            kind: OutlierKind::Random,
+            seed: 1,
+        };
+        let bad = inject_outliers(&w.graph, &outliers).expect("false edges");
+        let edges = bad.graph.edges();
+        let room = |e: &mut OnlineEstimator| {
+            e.reserve(bad.graph.node_count(), edges.len())
+                .expect("room for a small world")
+        };
+        let (mut rebuilds, mut before) = (0, None);
+        beside_a_plain_one(edges, room, |_, est| {
+            if est.counters().rebuilds != rebuilds {
+                rebuilds = est.counters().rebuilds;
+                before = None;
+            }
+            let now = arrays(est);
+            assert_eq!(
+                *before.get_or_insert(now),
+                now,
+                "an array moved after rebuild {rebuilds}"
+            );
+        });
+        assert!(rebuilds >= 2, "no rebuild replaced the estimator");
     }
 
     /// Room that cannot be had is a typed error, and the estimator answers on as before.
@@ -1014,24 +1102,20 @@ mod tests {
     fn room_refused_is_an_error_and_changes_nothing() {
         let w = simulate(&SimConfig::new(300, 2)).expect("a world");
         let edges = robot_order(w.graph.edges());
-        let mut refused = OnlineEstimator::new(OnlineConfig::default()).expect("default config");
-        let mut plain = OnlineEstimator::new(OnlineConfig::default()).expect("default config");
-        for (k, e) in edges.iter().enumerate() {
-            if k == 100 {
-                assert!(matches!(
-                    refused.reserve(10, u32::MAX as usize + 1),
-                    Err(OnlineError::Capacity(_))
-                ));
-                let err = refused
-                    .reserve(usize::MAX / 2, 10)
-                    .expect_err("too much room");
-                assert!(matches!(err, OnlineError::Reserve { .. }), "{err}");
-                assert!(err.to_string().contains("cannot reserve room"), "{err}");
-            }
-            refused.add_edge(*e).expect("a valid edge");
-            plain.add_edge(*e).expect("a valid edge");
-            assert_eq!(refused.newest().ok(), plain.newest().ok());
-        }
-        assert_eq!(refused.poses().ok(), plain.poses().ok());
+        beside_a_plain_one(
+            &edges,
+            |_| {},
+            |k, est| {
+                if k == 100 {
+                    assert!(matches!(
+                        est.reserve(10, u32::MAX as usize + 1),
+                        Err(OnlineError::Capacity(_))
+                    ));
+                    let err = est.reserve(usize::MAX / 2, 10).expect_err("too much room");
+                    assert!(matches!(err, OnlineError::Reserve { .. }), "{err}");
+                    assert!(err.to_string().contains("cannot reserve room"), "{err}");
+                }
+            },
+        );
     }
 }

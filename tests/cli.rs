@@ -405,6 +405,20 @@ fn stream_json_reports_latency_and_matches_screen() {
     assert!(text.contains("p99") && text.contains("cycle"), "{text}");
 }
 
+/// Two `stream --json` runs of one file answered alike: the same steps, cycles, decisions,
+/// hypotheses and counted work (what the pace or the room must not change).
+fn same_answers(a: &serde_json::Value, b: &serde_json::Value) {
+    for key in [
+        "steps",
+        "cycles",
+        "determined",
+        "hypotheses",
+        "work_per_step",
+    ] {
+        assert_eq!(a[key], b[key], "{key}");
+    }
+}
+
 /// `stream` reserves the file's counts before the first step unless `--no-reserve`: the
 /// answers and the counted work are the same either way, and the run says which it was.
 #[test]
@@ -419,15 +433,7 @@ fn stream_reserves_the_files_counts_unless_told_not_to() {
     ]);
     assert_eq!(roomy["reserved"], true, "{roomy}");
     assert_eq!(plain["reserved"], false, "{plain}");
-    for key in [
-        "steps",
-        "cycles",
-        "determined",
-        "hypotheses",
-        "work_per_step",
-    ] {
-        assert_eq!(roomy[key], plain[key], "{key}");
-    }
+    same_answers(&roomy, &plain);
     let text = so2lin()
         .args(["stream", "--no-reserve"])
         .arg(&g)
@@ -472,15 +478,7 @@ fn stream_at_a_rate_paces_the_edges_and_answers_the_same() {
         stream >= (steps - 1) as f64 / hz,
         "{stream} s for {steps} steps"
     );
-    for key in [
-        "steps",
-        "cycles",
-        "determined",
-        "hypotheses",
-        "work_per_step",
-    ] {
-        assert_eq!(fast[key], paced[key], "{key}");
-    }
+    same_answers(&fast, &paced);
     // Without --step-time the log's clock follows the pace: one newest pose every 1/HZ.
     let bytes = std::fs::read(&log).unwrap();
     let times: Vec<u64> = mcap::MessageStream::new(&bytes)

@@ -243,6 +243,7 @@ impl OnlineEstimator {
             checkpoint_interval: self.checkpoint_interval,
             doubtful_checkpoints: self.doubtful_checkpoints,
             reorder_in_step_work: self.reorder_in_step_work,
+            room_for: self.room_for,
         }
     }
 

@@ -254,6 +254,8 @@ impl OnlineEstimator {
                 .filter(|(i, _)| !self.held.contains_key(i) && !evicted.contains_key(i))
                 .map(|(_, h)| h.rejected),
         );
+        // The caller's room again: the estimate's factors were built at the replay's end.
+        fresh.keep_room(self.room_for);
         // The replaced estimator (its factors, thousands of rows) is freed on the worker,
         // not in this step.
         let old = std::mem::replace(self, fresh);
@@ -622,6 +624,8 @@ impl OnlineEstimator {
                 fresh
             }
         };
+        // The caller's room, before the replay fills the arrays (no copy to grow them).
+        fresh.keep_room(self.room_for);
         let start = fresh.arrivals;
         let later =
             (self.checkpoints).split_off(self.checkpoints.partition_point(|c| c.at() <= start));

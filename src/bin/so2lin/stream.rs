@@ -48,7 +48,8 @@ pub struct StreamArgs<'a> {
     pub step_time_ns: u64,
     /// Edges per second, as a robot's front end sends them (None: back to back).
     pub rate: Option<f64>,
-    /// Reserve the file's node and edge counts before the first step.
+    /// Reserve the file's node and edge counts before the first step (`reserved` in the
+    /// output says whether the room was had).
     pub reserve: bool,
     pub json: bool,
 }
@@ -141,9 +142,15 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     let edges: Vec<_> = file_index.iter().map(|&i| edges[i]).collect();
     // The file's size is known: its arrays are reserved before the first step, as a front end
     // that knows its mission's size would (`OnlineEstimator::reserve`).
-    if args.reserve {
-        est.reserve(nodes, edges.len()).map_err(|e| e.to_string())?;
-    }
+    // Refused, the stream goes on without it (the estimator is unchanged) and says so.
+    let reserved = args.reserve
+        && match est.reserve(nodes, edges.len()) {
+            Ok(()) => true,
+            Err(e) => {
+                eprintln!("warning: {e}; streaming without the room");
+                false
+            }
+        };
     let mut recorder = match args.log {
         Some(path) => {
             let source = args.file.display().to_string();
@@ -263,7 +270,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "edge_order": args.edge_order,
             "estimate": args.estimate,
             "rate_hz": args.rate,
-            "reserved": args.reserve,
+            "reserved": reserved,
             "max_lag_ms": args.rate.map(|_| max_lag.as_secs_f64() * 1e3),
             "estimate_renewals": c.estimate_renewals,
             "renewal_waits": c.renewal_waits,
@@ -328,7 +335,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         ),
         None => "edges back to back".to_owned(),
     };
-    let room = if args.reserve {
+    let room = if reserved {
         "the file's counts reserved"
     } else {
         "nothing reserved"
