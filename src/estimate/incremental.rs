@@ -1047,8 +1047,16 @@ fn align<'a, const L: usize>(
     if rest_pos.len() >= l && same(&rest_pos[..l], &row.pos) {
         return Some((&rest_val[..l], l));
     }
-    let last = row.pos.last().copied().unwrap_or(0);
     aligned.clear();
+    // Row k's pattern less its first position (the row met row k's first position, its
+    // parent, as a zero): a third of the rows rotated on M3500, where a merge would branch at
+    // every entry.
+    if l > 1 && rest_pos.len() >= l - 1 && same(&rest_pos[..l - 1], &row.pos[1..]) {
+        aligned.push([0.0; L]);
+        aligned.extend_from_slice(&rest_val[..l - 1]);
+        return Some((aligned, l - 1));
+    }
+    let last = row.pos.last().copied().unwrap_or(0);
     aligned.resize(l, [0.0; L]);
     let mut t = 0;
     let mut inside = 0;
@@ -1184,6 +1192,73 @@ mod tests {
             })
             .collect();
         (vec![inv_diag], dense_solve(h, g))
+    }
+
+    /// [`align`] against a plain lookup, on random rows and random rests: rests on the row's
+    /// whole pattern, on it less its first position (the fast path; a row of one position
+    /// included, where a rest before it is fill), on any subset, with entries beyond the
+    /// row's last, and with fill inside (`None`).
+    #[test]
+    fn align_places_a_rest_on_the_rows_pattern() {
+        let mut state = 7u64;
+        let mut aligned = Vec::new();
+        let mut cases = [0usize; 4];
+        for trial in 0..4_000 {
+            let l = 1 + trial % 9;
+            let mut pos: Vec<u32> = Vec::new();
+            let mut p = 1 + (lcg(&mut state) * 3.0) as u32;
+            for _ in 0..l {
+                pos.push(p);
+                p += 1 + (lcg(&mut state) * 3.0) as u32;
+            }
+            let row = Row::<2> {
+                val: pos.iter().map(|&q| [f64::from(q), -f64::from(q)]).collect(),
+                pos: pos.clone(),
+            };
+            let kind = trial % 4;
+            let mut rest: Vec<u32> = match kind {
+                0 => pos.clone(),
+                1 => pos[1..].to_vec(),
+                _ => pos
+                    .iter()
+                    .copied()
+                    .filter(|_| lcg(&mut state) < 0.6)
+                    .collect(),
+            };
+            if kind == 3 {
+                // A position between or before the row's: fill inside (unless it lands on one).
+                rest.push((lcg(&mut state) * f64::from(p)) as u32);
+            }
+            for b in 0..(lcg(&mut state) * 3.0) as u32 {
+                rest.push(p + b);
+            }
+            rest.sort_unstable();
+            rest.dedup();
+            let vals: Vec<[f64; 2]> = rest.iter().map(|&q| [f64::from(q) + 0.5, 1.0]).collect();
+            let last = pos[l - 1];
+            let fill = rest.iter().any(|&q| q <= last && !pos.contains(&q));
+            let got = align(&row, (&rest, &vals), &mut aligned).map(|(xs, n)| (xs.to_vec(), n));
+            if fill {
+                assert!(
+                    got.is_none(),
+                    "fill inside the row not seen: {pos:?} {rest:?}"
+                );
+                cases[3] += 1;
+                continue;
+            }
+            let want: Vec<[f64; 2]> = pos
+                .iter()
+                .map(|q| {
+                    rest.iter()
+                        .position(|r| r == q)
+                        .map_or([0.0; 2], |t| vals[t])
+                })
+                .collect();
+            let inside = rest.iter().filter(|&&q| q <= last).count();
+            assert_eq!(got, Some((want, inside)), "row {pos:?}, rest {rest:?}");
+            cases[kind.min(2)] += 1;
+        }
+        assert!(cases.iter().all(|&c| c > 100), "cases {cases:?}");
     }
 
     fn lcg(state: &mut u64) -> f64 {
