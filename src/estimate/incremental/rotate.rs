@@ -1,0 +1,582 @@
+//! Rotating a row into R: Givens rotations along the row's elimination-tree path.
+//!
+//! A row `(w, β)` meets row k of R at its first nonzero position k:
+//!
+//! ```text
+//! ρ = hypot(R_kk, w_k),  c = R_kk/ρ,  s = w_k/ρ,
+//! R_k ← c R_k + s w,     w ← c w − s R_k,     d_k ← c d_k + s β,     β ← c β − s d_k,
+//! ```
+//!
+//! which zeroes `w_k`; the row goes on to its next nonzero position (row k's parent in the
+//! elimination tree) until it is empty. A removed row is the same with hyperbolic rotations
+//! (`ρ = sqrt(R_kk² − w_k²)`, `c = ρ/R_kk`, `s = w_k/R_kk`). What is left of β, times the product
+//! of the cosines, is the row's prediction error (`β − aᵀx̂ = residual/Πc`), and
+//! `1/Πc² = 1 + aᵀ(RᵀR)⁻¹a` its variance ([`Leftover`]).
+//!
+//! Row k is rotated in place when the row's remaining positions lie in row k's pattern or
+//! beyond its last position ([`align`] places them; fill beyond the last is appended),
+//! otherwise row k is rebuilt by a merge. A tentative row ([`SqrtInfo::try_row`]) records
+//! each row it changes, to be put back bit for bit ([`SqrtInfo::undo_row`]).
+
+use super::{Indefinite, Lanes, Leftover, NONE, Row, SqrtInfo, has_zero, is_zero, lane};
+
+/// The state a tentative row ([`SqrtInfo::try_row`]) overwrote: per row of R it rotated, a
+/// [`Rotated`] record; and the factor-wide counts and gains.
+#[derive(Clone, Debug)]
+pub(super) struct Undo<const K: usize, const L: usize> {
+    rows: Vec<Rotated<K, L>>,
+    /// The rotated rows' values, one range per record.
+    values: Vec<[f64; L]>,
+    /// The positions of the rows rebuilt by a merge, one range per such record (a row rotated
+    /// in place only gained positions at its end: its old length restores its pattern).
+    positions: Vec<u32>,
+    nnz: usize,
+    work: u64,
+    gains: Vec<(u32, [f64; L])>,
+    gains_valid: bool,
+    /// A tried row is pending (neither kept nor undone).
+    active: bool,
+}
+
+impl<const K: usize, const L: usize> Default for Undo<K, L> {
+    fn default() -> Self {
+        Self {
+            rows: Vec::new(),
+            values: Vec::new(),
+            positions: Vec::new(),
+            nnz: 0,
+            work: 0,
+            gains: Vec::new(),
+            gains_valid: false,
+            active: false,
+        }
+    }
+}
+
+/// A row of R as a tentative row found it: its position, where its values (and positions, if
+/// a merge rebuilt it) start in the [`Undo`] record, its length, diagonal and right-hand side.
+#[derive(Clone, Copy, Debug)]
+struct Rotated<const K: usize, const L: usize> {
+    k: u32,
+    values: u32,
+    /// [`NONE`] when the row was rotated in place.
+    positions: u32,
+    len: u32,
+    diag: [f64; L],
+    d: [f64; K],
+}
+
+impl<const K: usize, const L: usize> SqrtInfo<K, L> {
+    /// The row `Σ a_v x_v` into `self.w`, at its variables' positions (repeats summed),
+    /// positions ascending.
+    pub(super) fn load<C: Lanes<L>>(&mut self, entries: &[(usize, C)]) {
+        self.w.clear();
+        for &(v, a) in entries {
+            let p = self.pos_of[v];
+            debug_assert!(p != NONE, "unknown variable {v}");
+            let a = a.lanes();
+            match self.w.pos.iter().position(|&q| q == p) {
+                Some(i) => {
+                    for (x, a) in self.w.val[i].iter_mut().zip(a) {
+                        *x += a;
+                    }
+                }
+                None => self.w.push(p, a),
+            }
+        }
+        // A handful of entries: sorted by insertion.
+        for i in 1..self.w.len() {
+            let mut j = i;
+            while j > 0 && self.w.pos[j - 1] > self.w.pos[j] {
+                self.w.pos.swap(j - 1, j);
+                self.w.val.swap(j - 1, j);
+                j -= 1;
+            }
+        }
+    }
+
+    /// Add the row `Σ a_v x_v = β` (Givens rotations): what the rotations leave.
+    pub fn add_row<C: Lanes<L>>(
+        &mut self,
+        entries: &[(usize, C)],
+        beta: [f64; K],
+    ) -> Leftover<K, L> {
+        self.load(entries);
+        // Cannot fail for an update.
+        let (residual, cosines) = self.rotate(beta, false).unwrap_or(([0.0; K], [1.0; L]));
+        Leftover { residual, cosines }
+    }
+
+    /// Add the row `Σ a_v x_v = β` like [`Self::add_row`], keeping what it overwrites until
+    /// [`Self::keep_row`] or [`Self::undo_row`] (no other change in between). Returns the
+    /// [`Leftover`]: the row's prediction error and variance come with the rotations that add
+    /// it (`β − aᵀx̂ = residual/Πc`, `1 + aᵀ(RᵀR)⁻¹a = 1/Πc²`), so a caller can judge the row
+    /// before keeping it, at the cost of one copy of the rows it touched.
+    pub fn try_row<C: Lanes<L>>(
+        &mut self,
+        entries: &[(usize, C)],
+        beta: [f64; K],
+    ) -> Leftover<K, L> {
+        let mut undo = self.undo.take().unwrap_or_default();
+        undo.rows.clear();
+        undo.values.clear();
+        undo.positions.clear();
+        undo.nnz = self.nnz;
+        undo.work = self.work;
+        undo.gains.clone_from(&self.gains);
+        undo.gains_valid = self.gains_valid;
+        undo.active = true;
+        self.undo = Some(undo);
+        self.load(entries);
+        let (residual, cosines) = self.rotate_recording(beta);
+        Leftover { residual, cosines }
+    }
+
+    /// Keep the row of the last [`Self::try_row`].
+    pub fn keep_row(&mut self) {
+        if let Some(u) = &mut self.undo {
+            u.rows.clear();
+            u.values.clear();
+            u.positions.clear();
+            u.active = false;
+        }
+    }
+
+    /// Take back the row of the last [`Self::try_row`]: R, d, the gains and the work count
+    /// exactly as before it (bit for bit; the rows it filled get their old entries back).
+    /// Nothing when no tried row is pending (kept, or already taken back).
+    pub fn undo_row(&mut self) {
+        let Some(mut u) = self.undo.take_if(|u| u.active) else {
+            return;
+        };
+        for r in u.rows.iter().rev() {
+            let (k, len) = (r.k as usize, r.len as usize);
+            let row = &mut self.rows[k];
+            if r.positions == NONE {
+                row.pos.truncate(len);
+            } else {
+                row.pos.clear();
+                let start = r.positions as usize;
+                row.pos.extend_from_slice(&u.positions[start..start + len]);
+            }
+            row.val.clear();
+            let start = r.values as usize;
+            row.val.extend_from_slice(&u.values[start..start + len]);
+            self.diag[k] = r.diag;
+            self.d[k] = r.d;
+        }
+        self.nnz = u.nnz;
+        // Work counts what stays: a renewal is due after the same work with or without it.
+        self.work = u.work;
+        std::mem::swap(&mut self.gains, &mut u.gains);
+        self.gains_valid = u.gains_valid;
+        u.rows.clear();
+        u.values.clear();
+        u.positions.clear();
+        u.active = false;
+        self.undo = Some(u);
+    }
+
+    /// Remove a row previously added (hyperbolic rotations). On failure the factor is left
+    /// partly updated; the owner rebuilds it.
+    pub fn remove_row<C: Lanes<L>>(
+        &mut self,
+        entries: &[(usize, C)],
+        beta: [f64; K],
+    ) -> Result<(), Indefinite> {
+        self.load(entries);
+        self.rotate(beta, true).map(|_| ())
+    }
+
+    /// Rotate the row in `self.w` (positions) with right-hand side `beta` into R.
+    /// [`Self::rotate`] of an update, recording every row it changes in `self.undo`: the
+    /// leftover right-hand side and the product of the cosines.
+    fn rotate_recording(&mut self, beta: [f64; K]) -> ([f64; K], [f64; L]) {
+        self.recording = self.undo.is_some();
+        let out = self.rotate(beta, false).unwrap_or(([0.0; K], [1.0; L]));
+        self.recording = false;
+        out
+    }
+
+    /// Rotate the row in `self.w` (right-hand side β) into R (a hyperbolic downdate when
+    /// `downdate`): the leftover right-hand side and the product of the cosines.
+    fn rotate(
+        &mut self,
+        mut beta: [f64; K],
+        downdate: bool,
+    ) -> Result<([f64; K], [f64; L]), Indefinite> {
+        let work_before = self.work;
+        let mut w = std::mem::take(&mut self.w);
+        let mut next = std::mem::take(&mut self.w_next);
+        // `Some(j)`: the row's positions are row j of R's (`w.pos` unused), its values `w.val`
+        // — what an in-place rotation leaves, so that its pattern is never copied.
+        let mut pattern_of: Option<usize> = None;
+        let mut head = 0;
+        self.gains.clear();
+        self.gains_valid = !downdate;
+        // The part of the row's right-hand side still to rotate, per unit of β (updates).
+        let mut gain = [1.0; L];
+        let result = loop {
+            while head < w.val.len() && is_zero(&w.val[head]) {
+                head += 1;
+            }
+            if head >= w.val.len() {
+                break Ok((beta, gain));
+            }
+            let wk = w.val[head];
+            let k = match pattern_of {
+                Some(j) => self.rows[j].pos[head],
+                None => w.pos[head],
+            } as usize;
+            self.work += (L * (1 + self.rows[k].len() + w.val.len() - head)) as u64;
+            if self.recording
+                && let Some(u) = &mut self.undo
+            {
+                let row = &self.rows[k];
+                u.rows.push(Rotated {
+                    k: k as u32,
+                    values: u.values.len() as u32,
+                    positions: NONE,
+                    len: row.len() as u32,
+                    diag: self.diag[k],
+                    d: self.d[k],
+                });
+                u.values.extend_from_slice(&row.val);
+            }
+            let (mut c, mut s) = ([1.0; L], [0.0; L]);
+            let mut indefinite = false;
+            let r = self.diag[k];
+            if !downdate && (0..L).all(|l| wk[l] != 0.0 && r[l].abs().max(wk[l].abs()) < 1e150) {
+                // Every lane turns, no square near overflow: the lanes at once (what the loop
+                // below computes, lane by lane).
+                let rho: [f64; L] = std::array::from_fn(|l| (r[l] * r[l] + wk[l] * wk[l]).sqrt());
+                c = std::array::from_fn(|l| r[l] / rho[l]);
+                s = std::array::from_fn(|l| wk[l] / rho[l]);
+                self.diag[k] = rho;
+            } else {
+                for l in 0..L {
+                    let (r, wk) = (self.diag[k][l], wk[l]);
+                    if wk == 0.0 {
+                        // This lane has no entry here (another has): nothing turns.
+                        continue;
+                    }
+                    let (cl, sl, rho) = if downdate {
+                        let rho2 = r * r - wk * wk;
+                        if rho2 <= 0.0 || !rho2.is_finite() {
+                            indefinite = true;
+                            break;
+                        }
+                        let rho = rho2.sqrt();
+                        (rho / r, wk / r, rho)
+                    } else {
+                        // hypot only where the squares could overflow (it is several times slower).
+                        let rho = if r.abs().max(wk.abs()) < 1e150 {
+                            (r * r + wk * wk).sqrt()
+                        } else {
+                            r.hypot(wk)
+                        };
+                        (r / rho, wk / rho, rho)
+                    };
+                    (c[l], s[l]) = (cl, sl);
+                    self.diag[k][l] = rho;
+                }
+            }
+            if indefinite {
+                break Err(Indefinite { position: k });
+            }
+            if !downdate {
+                self.gains
+                    .push((k as u32, std::array::from_fn(|l| s[l] * gain[l])));
+                for l in 0..L {
+                    gain[l] *= c[l];
+                }
+            }
+            next.clear();
+            let in_place = if downdate {
+                None
+            } else {
+                // Row k and the row's pattern (row j of R, j < k, or its own).
+                let (below, above) = self.rows.split_at_mut(k);
+                let rest_pos = match pattern_of {
+                    Some(j) => &below[j].pos[head + 1..],
+                    None => &w.pos[head + 1..],
+                };
+                rotate_in_place(
+                    &mut above[0],
+                    (c, s),
+                    (rest_pos, &w.val[head + 1..]),
+                    &mut next.val,
+                    &mut self.aligned,
+                )
+            };
+            if let Some((fill, zeros)) = in_place {
+                self.nnz += fill;
+                if zeros {
+                    // The row goes on with row k's pattern less its zeros, written out.
+                    next.pos.clear();
+                    next.pos.extend_from_slice(&self.rows[k].pos);
+                    drop_zeros(&mut next);
+                    pattern_of = None;
+                } else {
+                    pattern_of = Some(k);
+                }
+            } else {
+                if let Some(j) = pattern_of.take() {
+                    w.pos.clear();
+                    w.pos.extend_from_slice(&self.rows[j].pos);
+                }
+                // Fill inside row k (or a downdate): row k rebuilt by a merge with the row.
+                let old = std::mem::take(&mut self.rows[k]);
+                if self.recording
+                    && let Some(u) = &mut self.undo
+                    && let Some(r) = u.rows.last_mut()
+                {
+                    r.positions = u.positions.len() as u32;
+                    u.positions.extend_from_slice(&old.pos);
+                }
+                let mut row = std::mem::take(&mut self.spare_row);
+                row.clear();
+                let (mut i, mut j) = (0, head + 1);
+                while i < old.len() || j < w.len() {
+                    let (p, rkj, wj) = match (old.get(i), w.get(j)) {
+                        (Some((pa, a)), Some((pb, b))) if pa == pb => {
+                            i += 1;
+                            j += 1;
+                            (pa, a, b)
+                        }
+                        (Some((pa, a)), Some((pb, _))) if pa < pb => {
+                            i += 1;
+                            (pa, a, [0.0; L])
+                        }
+                        (Some(_), Some((pb, b))) => {
+                            j += 1;
+                            (pb, [0.0; L], b)
+                        }
+                        (Some((pa, a)), None) => {
+                            i += 1;
+                            (pa, a, [0.0; L])
+                        }
+                        (None, Some((pb, b))) => {
+                            j += 1;
+                            (pb, [0.0; L], b)
+                        }
+                        (None, None) => unreachable!(),
+                    };
+                    let (mut rn, mut wn) = ([0.0; L], [0.0; L]);
+                    for l in 0..L {
+                        (rn[l], wn[l]) = turn(downdate, (c[l], s[l]), rkj[l], wj[l]);
+                    }
+                    row.push(p, rn);
+                    if !is_zero(&wn) {
+                        next.push(p, wn);
+                    }
+                }
+                self.nnz = self.nnz + row.len() - old.len();
+                self.rows[k] = row;
+                self.spare_row = old;
+            }
+            let dk = &mut self.d[k];
+            for q in 0..K {
+                let l = lane::<L>(q);
+                (dk[q], beta[q]) = turn(downdate, (c[l], s[l]), dk[q], beta[q]);
+            }
+            std::mem::swap(&mut w, &mut next);
+            head = 0;
+        };
+        w.clear();
+        self.w = w;
+        self.w_next = next;
+        crate::work::estimated(self.work - work_before);
+        self.gains_valid &= result.is_ok();
+        result
+    }
+}
+
+/// The values of `rest` (a row being rotated in or solved for, after its pivot) at the positions
+/// of `row` (a row of R), zero where `rest` has none, and how many of `rest`'s entries lie
+/// within `row`'s range (the others lie beyond its last position: fill from a newer node's
+/// column). `None` when `rest` has a position within that range that `row` lacks (fill inside
+/// the row: the caller merges). The common case: after its first entry a row's pattern lies in
+/// its parent's, so the row being rotated in carries row k's pattern, or part of it.
+pub(super) fn align<'a, const L: usize>(
+    row: &Row<L>,
+    (rest_pos, rest_val): (&[u32], &'a [[f64; L]]),
+    aligned: &'a mut Vec<[f64; L]>,
+) -> Option<(&'a [[f64; L]], usize)> {
+    let l = row.len();
+    // Row k's pattern exactly (then whatever follows lies beyond its last position).
+    if rest_pos.len() >= l && same(&rest_pos[..l], &row.pos) {
+        return Some((&rest_val[..l], l));
+    }
+    aligned.clear();
+    // Row k's pattern less its first position (the row met row k's first position, its
+    // parent, as a zero): a third of the rows rotated on M3500, where a merge would branch at
+    // every entry.
+    if l > 1 && rest_pos.len() >= l - 1 && same(&rest_pos[..l - 1], &row.pos[1..]) {
+        aligned.push([0.0; L]);
+        aligned.extend_from_slice(&rest_val[..l - 1]);
+        return Some((aligned, l - 1));
+    }
+    let last = row.pos.last().copied().unwrap_or(0);
+    aligned.resize(l, [0.0; L]);
+    let mut t = 0;
+    let mut inside = 0;
+    for (&p, &x) in rest_pos.iter().zip(rest_val) {
+        if l == 0 || p > last {
+            break;
+        }
+        while row.pos[t] < p {
+            t += 1;
+        }
+        if row.pos[t] != p {
+            return None;
+        }
+        aligned[t] = x;
+        t += 1;
+        inside += 1;
+    }
+    Some((aligned, inside))
+}
+
+/// Whether two equally long position lists are equal: one pass without an early exit, which
+/// the compiler vectorises (the rows are a few dozen entries; a `memcmp` call cost more).
+#[inline]
+fn same(a: &[u32], b: &[u32]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+/// Drop the zeros of `row` (entries zero in every lane; in order).
+pub(super) fn drop_zeros<const L: usize>(row: &mut Row<L>) {
+    let mut o = 0;
+    for t in 0..row.len() {
+        if !is_zero(&row.val[t]) {
+            row.pos[o] = row.pos[t];
+            row.val[o] = row.val[t];
+            o += 1;
+        }
+    }
+    row.pos.truncate(o);
+    row.val.truncate(o);
+}
+
+/// Rotate row k of R in place with the row being rotated in (`rest`: its entries after row k's
+/// pivot) when [`align`] finds no fill inside row k: row k ← c·row k + s·rest and `next` ←
+/// c·rest − s·row k on row k's pattern (a loop over contiguous values), the positions of
+/// `rest` beyond row k's last appended to row k (`next` gets their values too): afterwards
+/// `next` holds the row's values on row k's whole pattern. Returns the number of entries
+/// appended to row k and whether `next` has zeros (which the row drops); `None`, with
+/// nothing changed, when there is fill inside the row.
+fn rotate_in_place<const L: usize>(
+    row: &mut Row<L>,
+    (c, s): ([f64; L], [f64; L]),
+    (rest_pos, rest_val): (&[u32], &[[f64; L]]),
+    next: &mut Vec<[f64; L]>,
+    aligned: &mut Vec<[f64; L]>,
+) -> Option<(usize, bool)> {
+    let (xs, inside) = align(row, (rest_pos, rest_val), aligned)?;
+    next.clear();
+    next.extend(row.val.iter_mut().zip(xs).map(|(r, x)| {
+        let mut wn = [0.0; L];
+        for l in 0..L {
+            (r[l], wn[l]) = turn(false, (c[l], s[l]), r[l], x[l]);
+        }
+        wn
+    }));
+    let mut zero = has_zero(next);
+    for (&p, x) in rest_pos[inside..].iter().zip(&rest_val[inside..]) {
+        // Fill beyond row k's last position: row k's entry there is 0.
+        let (mut rn, mut wn) = ([0.0; L], [0.0; L]);
+        for l in 0..L {
+            (rn[l], wn[l]) = turn(false, (c[l], s[l]), 0.0, x[l]);
+        }
+        row.push(p, rn);
+        zero |= is_zero(&wn);
+        next.push(wn);
+    }
+    Some((rest_pos.len() - inside, zero))
+}
+
+/// One Givens rotation (a hyperbolic one when `downdate`) of a pair: (row k's entry, the row's
+/// entry) → their rotated values.
+#[inline(always)]
+fn turn(downdate: bool, (c, s): (f64, f64), rkj: f64, wj: f64) -> (f64, f64) {
+    if downdate {
+        let rn = (rkj - s * wj) / c;
+        (rn, c * wj - s * rn)
+    } else {
+        (c * rkj + s * wj, c * wj - s * rkj)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::estimate::incremental::tests::lcg;
+
+    /// [`align`] against a plain lookup, on random rows and random rests: rests on the row's
+    /// whole pattern, on it less its first position (the fast path; a row of one position
+    /// included, where a rest before it is fill), on any subset, with entries beyond the
+    /// row's last, and with fill inside (`None`).
+    #[test]
+    fn align_places_a_rest_on_the_rows_pattern() {
+        let mut state = 7u64;
+        let mut aligned = Vec::new();
+        let mut cases = [0usize; 4];
+        for trial in 0..4_000 {
+            let l = 1 + trial % 9;
+            let mut pos: Vec<u32> = Vec::new();
+            let mut p = 1 + (lcg(&mut state) * 3.0) as u32;
+            for _ in 0..l {
+                pos.push(p);
+                p += 1 + (lcg(&mut state) * 3.0) as u32;
+            }
+            let row = Row::<2> {
+                val: pos.iter().map(|&q| [f64::from(q), -f64::from(q)]).collect(),
+                pos: pos.clone(),
+            };
+            let kind = trial % 4;
+            let mut rest: Vec<u32> = match kind {
+                0 => pos.clone(),
+                1 => pos[1..].to_vec(),
+                _ => pos
+                    .iter()
+                    .copied()
+                    .filter(|_| lcg(&mut state) < 0.6)
+                    .collect(),
+            };
+            if kind == 3 {
+                // A position between or before the row's: fill inside (unless it lands on one).
+                rest.push((lcg(&mut state) * f64::from(p)) as u32);
+            }
+            for b in 0..(lcg(&mut state) * 3.0) as u32 {
+                rest.push(p + b);
+            }
+            rest.sort_unstable();
+            rest.dedup();
+            let vals: Vec<[f64; 2]> = rest.iter().map(|&q| [f64::from(q) + 0.5, 1.0]).collect();
+            let last = pos[l - 1];
+            let fill = rest.iter().any(|&q| q <= last && !pos.contains(&q));
+            let got = align(&row, (&rest, &vals), &mut aligned).map(|(xs, n)| (xs.to_vec(), n));
+            if fill {
+                assert!(
+                    got.is_none(),
+                    "fill inside the row not seen: {pos:?} {rest:?}"
+                );
+                cases[3] += 1;
+                continue;
+            }
+            let want: Vec<[f64; 2]> = pos
+                .iter()
+                .map(|q| {
+                    rest.iter()
+                        .position(|r| r == q)
+                        .map_or([0.0; 2], |t| vals[t])
+                })
+                .collect();
+            let inside = rest.iter().filter(|&&q| q <= last).count();
+            assert_eq!(got, Some((want, inside)), "row {pos:?}, rest {rest:?}");
+            cases[kind.min(2)] += 1;
+        }
+        assert!(cases.iter().all(|&c| c > 100), "cases {cases:?}");
+    }
+}
