@@ -7,11 +7,11 @@
 //! R_k ← c R_k + s w,     w ← c w − s R_k,     d_k ← c d_k + s β,     β ← c β − s d_k,
 //! ```
 //!
-//! which zeroes `w_k`; the row goes on to its next nonzero position (row k's parent in the
-//! elimination tree) until it is empty. A removed row is the same with hyperbolic rotations
-//! (`ρ = sqrt(R_kk² − w_k²)`, `c = ρ/R_kk`, `s = w_k/R_kk`). What is left of β, times the product
-//! of the cosines, is the row's prediction error (`β − aᵀx̂ = residual/Πc`), and
-//! `1/Πc² = 1 + aᵀ(RᵀR)⁻¹a` its variance ([`Leftover`]).
+//! which zeroes `w_k`; the row goes on to its next nonzero position, up the elimination-tree
+//! path, until it is empty. A removed row is the same with hyperbolic rotations
+//! (`ρ = sqrt(R_kk² − w_k²)`, `c = ρ/R_kk`, `s = w_k/R_kk`). What is left of β is the row's
+//! prediction error times the product of the cosines (`residual = (β − aᵀx̂)·Πc`), and
+//! `1/Πc² = 1 + aᵀ(RᵀR)⁻¹a` is that error's variance in units of the row's ([`Leftover`]).
 //!
 //! Row k is rotated in place when the row's remaining positions lie in row k's pattern or
 //! beyond its last position ([`align`] places them; fill beyond the last is appended),
