@@ -1,0 +1,621 @@
+//! Renewing a [`Laplacian`]'s factor without a stall: when a renewal starts, what its builder
+//! does, and when the new factor is swapped in (the builder's thread and the hand-over of its
+//! state: [`crate::online::renewal`]).
+//!
+//! New nodes are appended at the end, so revisits of old places make R fill in, and the nodes
+//! appended since the last renewal form a chain that every loop closure to an older node walks. When R's nonzeros per row have grown by half (by a fifth
+//! from 20 000 variables: [`FILL_RATIO_LARGE`]), or an eighth of the nodes were appended, since the
+//! last renewal, a new factor is built **beside** the live one on another thread: approximate
+//! minimum-degree order with the newest node last (the graph as it was at that step; from 20 000
+//! variables four levels of nested dissection above it, [`dissected_order`], the separators
+//! computed afresh only once the graph has grown by a quarter and the nodes added since placed in
+//! the last renewal's tree otherwise, a renewal that splits afresh due [`SPLIT_BUILD`] times
+//! later), the normal
+//! equations factored at once by a sparse Cholesky ([`SqrtInfo::factored`], supernodal on large
+//! factors; rows rotated in when extreme weights defeat it). Every later change (node, row, removed
+//! prior, moved right-hand side) is sent to the builder, a step's changes together at its end
+//! (one lock and one wake-up: `strace -f -c` of `so2lin stream M3500.g2o --json` counted 7 251
+//! futex calls against 13 942 when each change went alone), which applies
+//! them to its factor as they come, so the live factor's steps replay nothing
+//! ([`crate::online::renewal`]). The new factor is
+//! collected once the live factor has done [`work_per_nonzero`] units of its own work
+//! ([`SqrtInfo::take_work`]; 96 up to M3500's 3 500 nodes, growing to 144 at 5 500, 120 from
+//! 20 000) per nonzero the renewed factor is expected to have (the last renewal's fill per row
+//! times the variables), and at least [`MIN_DELAY`] steps after the start — counts, not clocks, so
+//! the run stays deterministic whatever the threads' timing; the step waits only if the builder is
+//! still busy then — and swapped in. Every answer in between comes from the live factor: exact at
+//! every step.
+
+use super::{Laplacian, Rows, reset_rhs};
+use crate::estimate::incremental::{Dissection, SqrtInfo, dissected_order, fill_reducing_order};
+use crate::online::renewal::{Beside, Due};
+use std::sync::Arc;
+
+/// Renew the order when R's nonzeros per row exceed this multiple of the last renewal's
+/// ([`fill_ratio`]: below [`LARGE_FACTOR`] variables).
+const FILL_RATIO: f64 = 1.5;
+/// [`FILL_RATIO`] from [`LARGE_FACTOR`] variables on: a renewal starts sooner after the last one
+/// was collected. On large worlds the renewals' builder sat idle for most of the time between them
+/// (on the 100 000-pose world, collected 100–200 nodes after they started, then about 900 nodes
+/// before the next began), while the loop closures' work grew with the age of the order (mean 187 k
+/// entries in the first 100 steps after a collection, 364 k after 800, 794 k beyond 900; the
+/// slowest 1 % of the steps, 1 619 of 1 685, all beyond 900). Measured (`so2lin stream FILE
+/// --json`, robot order, the newest pose read after every step, the renewals supernodal where they
+/// pay, alternating runs, 2026-12-05; at 1.2 against 1.5): the 100 000-pose world p99 4.5–5.5
+/// against 7.0–7.8 ms, worst step 27–28 against 40–54 ms, 82–99 against 112–136 s of steps (two
+/// runs against four); a 30 000-pose world p99 1.68 against 1.87 ms, 7.1 against 7.9 s (six runs);
+/// but a 10 000-pose world 578 against 538 µs (eight), city10000 239 against 218 µs (ten) and
+/// M3500 120 against 126 µs (twelve): within their noise, so the smaller factors keep 1.5.
+const FILL_RATIO_LARGE: f64 = 1.2;
+/// Variables from which [`FILL_RATIO_LARGE`] and [`LARGE_SIZE`] apply, and renewals order by
+/// nested dissection ([`BuildOrder::Dissected`]). Below it dissection did not pay (`so2lin stream
+/// M3500.g2o --json`, robot order, the newest pose read after every step, 2026-12-05): from 256
+/// variables the estimate's work was 39.5 M values against 33.5 M for minimum degree alone (its
+/// fresh splits, due twice as late, come at nearly every renewal of a small graph), p99 167
+/// against 148 µs; with fresh splits due as the others 32.0 M, p99 144 µs but a worst step of
+/// 2.1 ms (three runs each); city10000 changed by 6 % or less and its builds took longer.
+pub(super) const LARGE_FACTOR: usize = 20_000;
+
+/// [`work_per_nonzero`]'s size factor from [`LARGE_FACTOR`] variables (1.5 below, from 5 500):
+/// large factors' renewals are collected sooner. Their builds cost less per nonzero than the
+/// rule's `^0.8` assumed once the largest are supernodal ([`SqrtInfo::factored`]), and with
+/// renewals starting sooner ([`FILL_RATIO_LARGE`]) each build has fewer changes to catch up.
+/// Measured (`so2lin stream FILE --json`, robot order, the newest pose read after every step,
+/// alternating runs, 2026-12-05; at 1.25 against 1.5): the 100 000-pose world p99 4.0–4.7
+/// against 4.5–5.4 ms (medians 4.4 and 4.9), worst step 25–28 against 34–39 ms, 71–83 against
+/// 80–92 s of steps, 4–17 waits against 4–21 (four runs against five); a 30 000-pose world
+/// (simplicial builds) p99 1.45 against 1.60 ms, 6.2 against 6.6 s, 4.5 waits against 9.5 (six
+/// runs each). At 1.0 the 100 000-pose world's builder fell behind: 41–44 waits, a worst step
+/// of 68 ms in one of two runs (p99 3.9–4.0 ms).
+const LARGE_SIZE: f64 = 1.25;
+
+/// How much later a renewal that splits its graph afresh ([`BuildOrder::Dissected`] without a
+/// tree) is due, as a factor on the work due: its separators cost about as much again as the
+/// rest of its build (about 200 ms against 100 ms for the minimum degree on the 100 000-pose
+/// world). Measured (`so2lin stream FILE --json`, robot order, the newest pose read after every
+/// step, two runs each alternating, 2026-12-05), on the 100 000-pose world: at 2 the worst step
+/// 41–42 ms with 12 waits, at 1 53–72 ms with 20–22 (p99 3.9 ms and 3.6–4.1 ms).
+const SPLIT_BUILD: f64 = 2.0;
+
+/// The fill growth per row that starts a renewal of a factor of `n` variables.
+fn fill_ratio(n: usize) -> f64 {
+    if n >= LARGE_FACTOR {
+        FILL_RATIO_LARGE
+    } else {
+        FILL_RATIO
+    }
+}
+
+/// Renew when more than `1/APPENDED_FRACTION` of the nodes were appended since the last
+/// renewal.
+const APPENDED_FRACTION: usize = 8;
+/// Below this many variables the order is never renewed.
+const MIN_VARIABLES: usize = 256;
+/// Steps between starting a renewal and collecting it, at least.
+pub(crate) const MIN_DELAY: u64 = 32;
+/// Work of the live factor ([`SqrtInfo::take_work`], entries visited) between starting a
+/// renewal and collecting it, per nonzero expected in the renewed factor. Measured on M3500,
+/// city10000 and a 10 000-pose simulated world: a build (its fill-reducing order included)
+/// takes 70–150 ns per nonzero of the factor it builds, the live factor 2–6 ns per entry
+/// visited, and the screening's builder may share the builder's core. Counting the live
+/// factor's work instead of steps keeps the collection in step with the builder when the live
+/// steps grow slow (a delay in steps let a 10 000-pose world's live factor fill for hundreds
+/// of milliseconds while its steps slowed down, and the builders of M3500 were waited for at
+/// 50 of its 5 453 steps, up to 2.4 ms). 96 rather than 64 since the screening takes its
+/// moments from this factor (module `online::predict`): with no P_UU solve between rotations
+/// the live factor does this work sooner, and at 64 the collections waited (the 100 000-pose
+/// world's worst step 158–173 ms in 35–38 waits, against 29–92 ms in 5 at 96; M3500's over 2 ms
+/// in 6 of 14 runs, against 1 of 12; `so2lin stream FILE --json`, robot order, the newest pose
+/// read after every step), at a cost of 5–20 % in p99 and stream time. Since rows are rotated
+/// over contiguous values (module `estimate::incremental`, 2026-12-04) the live factor does a
+/// unit of work a third faster, and on the larger graphs the builders fell behind: city10000
+/// waited at 34–38 collections (worst step 3.6–4.1 ms) against 2–4 before, and at 144 units
+/// per nonzero at 5–7 (1.1–1.5 ms, p99 0.72× before). M3500's builds keep up at 96 (p99 0.88×
+/// before; at 144 its p99 was 1.07×: the live factor fills for longer). So the constant grows
+/// with the factor, [`work_per_nonzero`].
+const WORK_PER_NONZERO: f64 = 96.0;
+
+/// [`WORK_PER_NONZERO`] for a factor of `n` variables: × `(n / 3 500)^0.8`, between 1 (M3500's
+/// size and below) and 1.5 (from about 5 500 variables). A build's cost per nonzero grows with
+/// the factor (its order's and the caches'), the live factor's work per unit of time falls.
+/// (With `^0.4`, 1.5 from 10 000 variables: city10000 waited at 17–19 collections against 10
+/// with `^0.8`, four alternating runs.) From [`LARGE_FACTOR`] variables, [`LARGE_SIZE`].
+fn work_per_nonzero(n: usize, lanes: usize) -> f64 {
+    let size = if n >= LARGE_FACTOR {
+        LARGE_SIZE
+    } else {
+        (n as f64 / 3_500.0).powf(0.8).clamp(1.0, 1.5)
+    };
+    WORK_PER_NONZERO * size * (1.0 + size * EXTRA_LANE_BUILD * lanes.saturating_sub(1) as f64)
+}
+
+/// What each lane beyond the first adds to a renewal's build, relative to the live work of
+/// that lane (which [`SqrtInfo::take_work`] counts per value, so a two-lane factor's work
+/// comes twice as fast), at M3500's size; it grows with the factor as the build's cost per
+/// nonzero does ([`work_per_nonzero`]'s size factor): a build of two lanes makes one order and
+/// one symbolic factorization for both, but twice the numeric work, and rotates two lanes. Measured
+/// (`so2lin stream FILE --json`, robot order, the newest pose read after every step,
+/// alternating runs, 2026-12-05): on M3500 at 0 its collections waited for the builder and
+/// the worst step was 2.4–3.1 ms in a slow hour (1.4–1.9 ms in a quiet one); at 0.15
+/// 1.1–2.6 ms; at 0.3 0.9–1.2 ms (0.45–0.86), against 0.5–0.65 ms for the two one-lane
+/// factors this replaced. On ais2klinik (15 115 poses) a flat 0.3 left the worst step at
+/// 2.7–8.5 ms (over 2 ms in 7 of 8 runs, against 3 of 8 for the two factors); grown with the
+/// size, 1.4–3.5 ms (1 of 8), p99 289–291 against 345–358 µs.
+const EXTRA_LANE_BUILD: f64 = 0.3;
+
+/// A change to the system, sent to a renewal's builder so that it keeps its copy up to date
+/// itself (the live factor's steps replay nothing).
+pub(crate) enum Msg<const K: usize, const L: usize> {
+    /// A new variable.
+    Variable(u32),
+    /// An anchor's prior row added.
+    Prior((usize, [f64; L])),
+    /// An anchor's prior row removed.
+    Unprior((usize, [f64; L])),
+    /// An edge: its ends, √w (per lane) and y.
+    Edge(u32, u32, [f64; L], [f64; K]),
+    /// Edge e's y is now this.
+    SetY(u32, [f64; K]),
+    /// Every edge's y is now this (a re-linearisation: [`Laplacian::relinearise`]).
+    Relinearised(Vec<[f64; K]>),
+}
+
+/// What [`Laplacian::after_step`] did with the factor's renewal.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum RenewalEvent {
+    /// A renewal started: its snapshot takes the rows as re-linearised then.
+    Started,
+    /// A renewal was swapped in: the live rows are now its snapshot's, with every change since.
+    Collected,
+}
+
+/// What a renewal's builder returns: its factor, the right-hand sides it holds, and the
+/// dissection its order came from (large factors).
+type Built<const K: usize, const L: usize> = (SqrtInfo<K, L>, Vec<[f64; K]>, Option<Dissection>);
+
+/// A renewal builder's state: its factor, its copy of the rows, its dissection.
+type Building<const K: usize, const L: usize> = (SqrtInfo<K, L>, Rows<K, L>, Option<Dissection>);
+
+/// A job that rewrites (some of) the measurements `y` of a renewal's snapshot, run by the
+/// builder.
+pub(super) type Relinearise<const K: usize> = Box<dyn FnOnce(&mut [[f64; K]]) + Send>;
+
+/// A renewal of a Laplacian's factor in progress.
+pub(super) type Renewal<const K: usize, const L: usize> =
+    Beside<Building<K, L>, Built<K, L>, Msg<K, L>>;
+
+/// How a build orders the variables.
+pub(super) enum BuildOrder {
+    /// Approximate minimum degree ([`fill_reducing_order`]).
+    MinimumDegree,
+    /// Nested dissection ([`dissected_order`]): the variables placed in the given tree, or a
+    /// fresh split.
+    Dissected(Option<Arc<Dissection>>),
+}
+
+impl<const K: usize, const L: usize> Laplacian<K, L> {
+    /// Tell a renewal's builder (if any) about a change: queued here, and handed over with
+    /// the step's others at its end ([`Self::post`]).
+    pub(super) fn send(&mut self, msg: Msg<K, L>) {
+        if self.renewal.is_some() {
+            self.outbox.push(msg);
+        }
+    }
+
+    /// Hand the step's changes to the renewal's builder at once: one lock, and one wake-up
+    /// when it waits for them, per step rather than per change (a wake-up is a system call,
+    /// and the builder's thread woke for each). A builder that is gone abandons the renewal
+    /// (the live factor goes on).
+    pub(super) fn post(&mut self) {
+        if self.outbox.is_empty() {
+            return;
+        }
+        if let Some((r, _)) = &self.renewal
+            && !r.send_all(self.outbox.drain(..))
+        {
+            self.drop_renewal();
+        }
+    }
+
+    /// Abandon the renewal in progress (if any) and the changes queued for it.
+    pub(super) fn drop_renewal(&mut self) {
+        self.renewal = None;
+        self.outbox.clear();
+    }
+
+    /// Collect later renewals after `delay` times the default work ([`work_per_nonzero`]):
+    /// sooner below 1 (a caller whose edges arrive slowly enough for the builder).
+    pub fn set_renewal_delay(&mut self, delay: f64) {
+        self.renewal_delay = delay;
+    }
+
+    /// Called once per step, after its events: starts or completes a renewal. A renewal's
+    /// snapshot takes the right-hand sides computed by the job `relinearise` gives (None: the
+    /// current ones), run on the builder's thread; they become the live ones when the renewal
+    /// is swapped in.
+    pub fn after_step(
+        &mut self,
+        relinearise: impl FnOnce(&mut Self) -> Option<Relinearise<K>>,
+    ) -> Option<RenewalEvent> {
+        self.steps += 1;
+        if self.deferred {
+            return None;
+        }
+        self.flush_rhs();
+        self.step_work();
+        self.post();
+        if self.renewal.is_some() {
+            return self.complete_renewal().then_some(RenewalEvent::Collected);
+        }
+        let n = self.len();
+        if n < MIN_VARIABLES {
+            return None;
+        }
+        // Nodes appended since the last renewal form a chain at the end of the order that
+        // every loop closure to an older node walks: renew when it is an eighth of the graph,
+        // or when the fill per row has grown by half (a fifth on large factors).
+        let per_row = self.factor.nnz() as f64 / n as f64;
+        let appended = n - self.nodes_at_renewal;
+        if per_row <= fill_ratio(n) * self.fill_after_renewal.max(1.0)
+            && appended <= MIN_VARIABLES.max(n / APPENDED_FRACTION)
+        {
+            return None;
+        }
+        let mut rows = self.rows.clone();
+        let relinearise = relinearise(self);
+        let prior = self.prior.clone();
+        let newest = n - 1;
+        // The builder's work grows with the size of the factor it builds (about the last
+        // renewal's fill per row), not with the live factor's fill, which is what grows
+        // without bound between renewals.
+        let expected_nnz = self.fill_after_renewal.max(2.0) * n as f64;
+        // The renewed factor and right-hand sides get the live ones' room (reserved on the
+        // builder, so that the first node or edge after the swap does not copy them in a step).
+        let room = self.factor.capacity();
+        let y_room = self.rows.y.capacity();
+        let order = if n >= self.dissect_from {
+            BuildOrder::Dissected(self.dissection.clone().filter(|t| !t.stale(n)))
+        } else {
+            BuildOrder::MinimumDegree
+        };
+        // A fresh split computes its separators too.
+        let split = if matches!(order, BuildOrder::Dissected(None)) {
+            SPLIT_BUILD
+        } else {
+            1.0
+        };
+        let build = move || {
+            if let Some(job) = relinearise {
+                job(&mut rows.y);
+            }
+            let (mut f, tree) = build(&rows, &prior, n, Some(newest), order);
+            // (Refused, the renewed factor grows as it would have.)
+            let _ = f.try_reserve(room.saturating_sub(f.len()));
+            let _ = rows.y.try_reserve(y_room.saturating_sub(rows.y.len()));
+            Some((f, rows, tree))
+        };
+        // Keep up with the live system until collected.
+        let apply = |(f, rows, _): &mut Building<K, L>, msg: Msg<K, L>| {
+            match msg {
+                Msg::Variable(v) => f.push_variable(v as usize),
+                Msg::Prior(p) => {
+                    f.add_row(&[p], [0.0; K]);
+                }
+                Msg::Unprior(p) => f.remove_row(&[p], [0.0; K]).ok()?,
+                Msg::Edge(a, b, s, y) => {
+                    rows.ends.push((a, b));
+                    rows.sqrt_w.push(s);
+                    rows.y.push(y);
+                    let e = rows.ends.len() - 1;
+                    f.add_row(&rows.entries(e), rows.rhs(e));
+                }
+                Msg::Relinearised(y) => {
+                    if y.len() != rows.y.len() {
+                        return None;
+                    }
+                    rows.y = y;
+                    reset_rhs(f, rows, 0);
+                }
+                Msg::SetY(e, y) => {
+                    let e = e as usize;
+                    let old = *rows.y.get(e)?;
+                    rows.y[e] = y;
+                    let shift = rows.shift(e, old, y);
+                    // The last edge's row is the last row added unless a prior's was removed
+                    // since (which makes the gains stale).
+                    if e + 1 != rows.ends.len() || !f.shift_last_row(shift) {
+                        f.shift_rhs(&rows.entries(e), shift);
+                    }
+                }
+            }
+            Some(())
+        };
+        let finish = |(f, rows, tree): Building<K, L>| (f, rows.y, tree);
+        let due = Due {
+            step: self.steps + MIN_DELAY,
+            // Saturating: a caller's delay may be any finite positive number.
+            work: self.work.saturating_add(
+                (expected_nnz * split * work_per_nonzero(n, L) * self.renewal_delay) as u64,
+            ),
+        };
+        let worker = &mut self.worker;
+        let renewal = Beside::start(worker, "so2lin-renew", build, apply, finish)?;
+        self.nodes_at_renewal = n;
+        self.renewal = Some((renewal, due));
+        Some(RenewalEvent::Started)
+    }
+
+    /// At the renewal's step: collect the builder (which has applied every change since its
+    /// snapshot) and swap its factor in; the old one is freed on the worker.
+    /// Whether it was swapped in.
+    fn complete_renewal(&mut self) -> bool {
+        let Some((_, due)) = &self.renewal else {
+            return false;
+        };
+        if !due.reached(self.steps, self.work) {
+            return false;
+        }
+        let Some((r, _)) = self.renewal.take() else {
+            return false;
+        };
+        let Some((fresh, y, tree)) = r.collect(&mut self.waits) else {
+            return false;
+        };
+        if y.len() != self.rows.y.len() {
+            return false;
+        }
+        if let Some(tree) = tree {
+            self.dissection = Some(Arc::new(tree));
+        }
+        // The builder's array, with the live one's room.
+        self.rows.y = y;
+        self.install(fresh);
+        self.renewals += 1;
+        true
+    }
+}
+
+/// A factor of the whole system in a fill-reducing order (`last` at the end), and the
+/// dissection the order came from ([`BuildOrder::Dissected`]).
+pub(super) fn build<const K: usize, const L: usize>(
+    rows: &Rows<K, L>,
+    prior: &[[f64; L]],
+    n: usize,
+    last: Option<usize>,
+    ordering: BuildOrder,
+) -> (SqrtInfo<K, L>, Option<Dissection>) {
+    let ends: Vec<(usize, usize)> = rows
+        .ends
+        .iter()
+        .map(|&(a, b)| (a as usize, b as usize))
+        .collect();
+    let last: Vec<usize> = last.into_iter().collect();
+    let (order, tree) = match ordering {
+        BuildOrder::MinimumDegree => (fill_reducing_order(n, &ends, &last), None),
+        BuildOrder::Dissected(tree) => {
+            let (order, tree) = dissected_order(n, &ends, &last, tree.as_deref());
+            (order, Some(tree))
+        }
+    };
+    let priors = prior
+        .iter()
+        .enumerate()
+        .take(n)
+        .filter(|&(_, &p)| p != [0.0; L])
+        .map(|(v, &p)| ([(v, p), (v, [0.0; L])], [0.0; K]));
+    let edges = (0..rows.ends.len()).map(|e| (rows.entries(e), rows.rhs(e)));
+    if let Some(f) = SqrtInfo::factored(&order, priors.clone().chain(edges.clone())) {
+        return (f, tree);
+    }
+    // Extreme weights: rotate the rows in (QR, better conditioned than the normal equations).
+    let mut f = SqrtInfo::new();
+    for v in order {
+        f.push_variable(v);
+    }
+    for (entries, rhs) in priors.chain(edges) {
+        f.add_row(&entries, rhs);
+    }
+    (f, tree)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A renewal is collected once the live factor's work reaches its due (and `MIN_DELAY`
+    /// steps have passed): steps without work leave it pending.
+    #[test]
+    fn a_renewal_is_due_by_work() {
+        let mut l = Laplacian::<1>::default();
+        l.add_node();
+        while !l.renewing() {
+            let v = l.add_node();
+            l.add_edge(v - 1, v, 4.0, [0.1]);
+            let event = l.after_step(|_| None);
+            assert_eq!(event.is_some(), l.renewing(), "started: {event:?}");
+            assert!(l.len() <= MIN_VARIABLES + 1, "no renewal started");
+        }
+        for _ in 0..2 * MIN_DELAY {
+            assert_eq!(l.after_step(|_| None), None);
+        }
+        assert!(
+            l.renewing() && l.renewals == 0,
+            "collected without the work due"
+        );
+        // Loop closures to the first node: the live factor's own work, until the due.
+        let mut closures = 0;
+        while l.renewals == 0 {
+            let v = l.len() - 1;
+            l.add_edge(0, v, 1.0, [0.1 * v as f64]);
+            closures += 1;
+            let event = l.after_step(|_| None);
+            assert_eq!(event.is_some(), l.renewals == 1, "{event:?}");
+            assert!(closures < 10_000, "not collected with the work due");
+        }
+        assert!(closures > 1, "collected before the work was due");
+        assert!(
+            !l.renewing() && l.renewals == 1,
+            "not collected with the work due"
+        );
+        // The renewed factor gives the same answer.
+        let x = l.all(0);
+        let last = x.len() - 1;
+        assert!((x[last] - 0.1 * last as f64).abs() < 1e-9, "{}", x[last]);
+    }
+
+    /// Any finite positive renewal delay is taken as given: a huge one leaves every renewal
+    /// pending (its due saturates rather than wrapping round to a due already reached), a
+    /// tiny one collects each as soon as [`MIN_DELAY`] steps have passed.
+    #[test]
+    fn extreme_renewal_delays_saturate() {
+        let run = |delay: f64| {
+            let mut l = Laplacian::<1>::default();
+            l.set_renewal_delay(delay);
+            l.add_node();
+            for v in 1..2_000 {
+                l.add_node();
+                l.add_edge(v - 1, v, 4.0, [0.1]);
+                if v % 3 == 0 {
+                    l.add_edge(v / 2, v, 1.0, [0.05 * v as f64]);
+                }
+                l.after_step(|_| None);
+            }
+            l.renewals
+        };
+        assert_eq!(
+            run(1e300),
+            0,
+            "a renewal collected before its (unreachable) due"
+        );
+        assert!(run(1e-300) > run(1.0), "a tiny delay collects sooner");
+    }
+
+    /// Room reserved for the nodes and edges to come: the rows' arrays never move, and every
+    /// renewal's factor and right-hand sides come with the live ones' room (reserved on the
+    /// builder), so no step copies an array to grow it. Without the builder's reserve, the
+    /// swapped-in arrays hold their own count rounded up to a power of two, less than the room.
+    #[test]
+    fn reserved_room_outlives_renewals() {
+        let n = 2_000;
+        let mut l = Laplacian::<1>::default();
+        l.try_reserve(3 * n, 6 * n).expect("room for a small world");
+        let rows = |l: &Laplacian<1>| {
+            (
+                l.rows.ends.as_ptr(),
+                l.rows.sqrt_w.as_ptr(),
+                l.prior.as_ptr(),
+            )
+        };
+        let before = rows(&l);
+        l.add_node();
+        for v in 1..n {
+            l.add_node();
+            l.add_edge(v - 1, v, 4.0, [0.1]);
+            if v % 3 == 0 {
+                l.add_edge(v / 2, v, 1.0, [0.05 * v as f64]);
+            }
+            l.after_step(|_| None);
+        }
+        assert!(l.renewals >= 2, "renewals {}", l.renewals);
+        assert_eq!(rows(&l), before, "a reserved array grew");
+        // The right-hand sides come from the builder, with the room.
+        assert!(l.rows.y.capacity() >= 6 * n, "{}", l.rows.y.capacity());
+        assert!(
+            l.factor.capacity() >= 3 * n,
+            "the renewed factor holds {} variables without growing",
+            l.factor.capacity()
+        );
+        let (nodes, edges) = l.room();
+        assert!(nodes >= 2 * n && edges >= 4 * n, "room {nodes}, {edges}");
+    }
+
+    /// Renewals from `dissect_from` variables order by nested dissection: the first splits the
+    /// graph, the later ones place the nodes added since in its tree until the graph has grown
+    /// by a quarter, then split it afresh. Every answer is that of renewals by minimum degree
+    /// alone (a boustrophedon over a 60 × 60 grid, each node closing a loop to its neighbour in
+    /// the row before, and every third to an older node further away).
+    #[test]
+    #[cfg(feature = "metis")]
+    fn dissected_renewals_answer_as_minimum_degree_ones() {
+        let w = 60;
+        let index = |r: usize, c: usize| r * w + if r.is_multiple_of(2) { c } else { w - 1 - c };
+        let mut dissected = Laplacian::<2> {
+            dissect_from: 400,
+            ..Laplacian::default()
+        };
+        let mut plain = Laplacian::<2> {
+            dissect_from: usize::MAX,
+            ..Laplacian::default()
+        };
+        let mut bases = Vec::new();
+        let (mut placed, mut dissected_renewals) = (0, 0);
+        let mut last: Option<Arc<Dissection>> = None;
+        for l in [&mut dissected, &mut plain] {
+            l.add_node();
+        }
+        for v in 1..w * w {
+            let (r, c) = (
+                v / w,
+                if (v / w).is_multiple_of(2) {
+                    v % w
+                } else {
+                    w - 1 - v % w
+                },
+            );
+            for l in [&mut dissected, &mut plain] {
+                l.add_node();
+                l.add_edge(v - 1, v, 4.0, [0.01 * (v % 7) as f64, 1.0]);
+                if r > 0 {
+                    let y = [0.05 * ((v * 13) % 5) as f64 - 0.1, 0.5];
+                    l.add_edge(index(r - 1, c), v, 2.0, y);
+                }
+                if v.is_multiple_of(3) {
+                    // A long loop closure now and then: work for the live factor.
+                    l.add_edge((v * 7919 + v * v) % (v - 1), v, 1.0, [0.02, -1.0]);
+                }
+            }
+            let renewals = dissected.renewals;
+            dissected.after_step(|_| None);
+            plain.after_step(|_| None);
+            if dissected.renewals > renewals
+                && let Some(tree) = dissected.dissection.as_ref()
+                && !last.as_ref().is_some_and(|l| Arc::ptr_eq(l, tree))
+            {
+                last = Some(Arc::clone(tree));
+                dissected_renewals += 1;
+                if bases.last() != Some(&tree.base()) {
+                    bases.push(tree.base());
+                } else {
+                    placed += 1;
+                }
+            }
+            let (a, b) = (dissected.value(v), plain.value(v));
+            assert!(
+                (a[0] - b[0]).abs() < 1e-9 && (a[1] - b[1]).abs() < 1e-9,
+                "node {v}: {a:?} against {b:?}"
+            );
+            if v.is_multiple_of(100) {
+                for q in 0..2 {
+                    let (a, b) = (dissected.all(q), plain.all(q));
+                    let gap = a
+                        .iter()
+                        .zip(&b)
+                        .map(|(x, y)| (x - y).abs())
+                        .fold(0.0, f64::max);
+                    assert!(gap < 1e-9, "node {v}, column {q}: {gap}");
+                }
+            }
+        }
+        eprintln!(
+            "{} renewals, {dissected_renewals} dissected, splits at {bases:?}, {placed} placed",
+            dissected.renewals
+        );
+        assert!(bases.len() >= 2, "split {} times", bases.len());
+        assert!(placed >= 1, "no renewal placed nodes in a kept tree");
+        assert!(
+            bases.windows(2).all(|b| b[1] as f64 > 1.25 * b[0] as f64),
+            "split before the graph grew by a quarter: {bases:?}"
+        );
+        assert!(plain.dissection.is_none());
+    }
+}
