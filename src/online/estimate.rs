@@ -27,16 +27,17 @@
 //! ([`Estimate::pose`]) lag the heading corrections that later loop closures make to old nodes,
 //! like iSAM2's with a relinearisation threshold. Every position row is re-linearised at the
 //! current headings whenever a renewal of the position factor's order starts (the renewed
-//! factor takes them), and at the step at which a bound on how far the headings have
-//! moved since the rows were linearised passes [`HEADING_LAG`] — the rows rewritten at that
-//! step's headings (one back-substitution), the factor's right-hand sides recomputed from
-//! them at the end of the next step (one forward solve: [`Laplacian::relinearise`]), so that
-//! no step pays for both passes over the factor: each heading row added, or
-//! measurement moved, changes the headings by a potential driven between its two ends, which
-//! by the maximum principle moves no node by more than it moves the edge's own difference
-//! `θ_b − θ_a` — known from the rotations (`(δ − (θ̂_b − θ̂_a))(1 − Πc²)`, [`Laplacian::moved`]);
-//! the bound adds these up. Both are step-scheduled events, so the answers do not depend on
-//! what was read when. [`Estimate::poses`] is the exact answer on
+//! factor takes them; its builder solves those headings from the factor it built, so the step
+//! that starts a renewal pays no back-substitution), and at the step at which a bound on how
+//! far the headings have moved since the rows were linearised passes [`HEADING_LAG`] — the
+//! rows rewritten at that step's headings (one back-substitution), the factor's right-hand
+//! sides recomputed from them at the end of the next step (one forward solve:
+//! [`Laplacian::relinearise`]), so that no step pays for both passes over the factor: each
+//! heading row added, or measurement moved, changes the headings by a potential driven between
+//! its two ends, which by the maximum principle moves no node by more than it moves the edge's
+//! own difference `θ_b − θ_a` — known from the rotations (`(δ − (θ̂_b − θ̂_a))(1 − Πc²)`,
+//! [`Laplacian::moved`]); the bound adds these up. Both are step-scheduled events, so the
+//! answers do not depend on what was read when. [`Estimate::poses`] is the exact answer on
 //! demand, without changing the factor: every position row at the current headings (one forward
 //! and one back-substitution; a 2×2-block system solved from scratch when the translation
 //! information is not isotropic).
@@ -232,15 +233,15 @@ fn tails(graph: &PoseGraph, edges: usize) -> impl Iterator<Item = (usize, Pose2)
         .map(|(&(a, _), e)| (a, e.measurement()))
 }
 
-/// [`write_relinearised`] as a job for a renewal's builder: the tails are copied now.
+/// [`write_relinearised`] as a job for a renewal's builder, which gives it the headings: the
+/// tails are copied now.
 fn relinearise<const K: usize>(
-    theta: Vec<f64>,
     graph: &PoseGraph,
     edges: usize,
     first: usize,
-) -> impl FnOnce(&mut [[f64; K]]) + Send + 'static {
+) -> impl FnOnce(&mut [[f64; K]], &[f64]) + Send + 'static {
     let copied: Vec<(usize, Pose2)> = tails(graph, edges).collect();
-    move |y: &mut [[f64; K]]| write_relinearised(y, &theta, copied.into_iter(), first)
+    move |y: &mut [[f64; K]], theta: &[f64]| write_relinearised(y, theta, copied.into_iter(), first)
 }
 
 /// Keep the headings' bound [`Laplacian::moved`] as the lag of the position rows across a
@@ -510,15 +511,15 @@ impl Estimate {
     }
 
     /// End of a step: renewals start or complete. A renewal of the factor takes every
-    /// position row at the current headings.
+    /// position row at the current headings (solved and written on its builder).
     fn after_step(&mut self, graph: &PoseGraph) {
         let edges = self.factors.position_rows();
         let deferred = self.factors.deferred();
         let at_start = &mut self.moved_at_renewal;
         with_factor!(&mut self.factors, both => {
-            let event = both.after_step(|both| {
-                // The headings here (one back-substitution); the rows on the builder.
-                Some(Box::new(relinearise::<3>(both.all(0), graph, edges, 1)))
+            let event = both.after_step(|| {
+                // The headings and the rows from them on the builder.
+                Some(Box::new(relinearise::<3>(graph, edges, 1)))
             });
             track_lag(both, event, at_start);
         });

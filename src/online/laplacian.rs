@@ -428,22 +428,18 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     /// [`Self::all`] for the right-hand sides `columns`, in one back-substitution.
     pub fn all_columns<const M: usize>(&mut self, columns: [usize; M]) -> [Vec<f64>; M] {
         let mut xs = self.factor.solve_columns(columns);
-        let anchors: Vec<usize> = (0..self.len())
-            .map(|v| self.anchor[self.components.find(v)])
-            .collect();
+        let anchors = self.anchors();
         for x in &mut xs {
-            for (v, &a) in anchors.iter().enumerate() {
-                if a != v {
-                    x[v] -= x[a];
-                }
-            }
-            for (xv, &p) in x.iter_mut().zip(&self.prior) {
-                if p != [0.0; L] {
-                    *xv = 0.0;
-                }
-            }
+            anchored(x, &anchors, &self.prior);
         }
         xs
+    }
+
+    /// Each node's anchor (the first node of its component).
+    fn anchors(&mut self) -> Vec<usize> {
+        (0..self.len())
+            .map(|v| self.anchor[self.components.find(v)])
+            .collect()
     }
 
     /// Marginal variance of node v in the anchored system: `Var(θ_v − θ_anchor)` (0 for an
@@ -577,6 +573,22 @@ impl<const K: usize> Laplacian<K> {
     }
 }
 
+/// Make a solution `x` (indexed by node) relative to each node's anchor (`anchors`,
+/// [`Laplacian::anchors`]), which removes the rounding of the common mode; an anchor with a
+/// prior row (`prior`) is exactly 0.
+fn anchored<const L: usize>(x: &mut [f64], anchors: &[usize], prior: &[[f64; L]]) {
+    for (v, &a) in anchors.iter().enumerate() {
+        if a != v {
+            x[v] -= x[a];
+        }
+    }
+    for (xv, &p) in x.iter_mut().zip(prior) {
+        if p != [0.0; L] {
+            *xv = 0.0;
+        }
+    }
+}
+
 /// d of a factor, its right-hand sides `from..K`, from the rows' current ones (priors have 0).
 fn reset_rhs<const K: usize, const L: usize>(
     f: &mut SqrtInfo<K, L>,
@@ -591,7 +603,6 @@ fn reset_rhs<const K: usize, const L: usize>(
 
 #[cfg(test)]
 mod tests {
-    use super::renew::Relinearise;
     use super::*;
 
     /// A re-linearisation rewrites the rows at once and their right-hand sides at the end of
@@ -613,14 +624,14 @@ mod tests {
             l
         };
         // Every position measurement turned by 0.3 rad.
-        let job = || -> Relinearise<3> {
-            Box::new(|y: &mut [[f64; 3]]| {
+        let job = || {
+            |y: &mut [[f64; 3]]| {
                 for r in y.iter_mut() {
                     let (s, c) = 0.3f64.sin_cos();
                     let [x, y] = [r[1], r[2]];
                     (r[1], r[2]) = (c * x - s * y, s * x + c * y);
                 }
-            })
+            }
         };
         let close = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-9);
         let (mut now, mut later) = (build(), build());
@@ -639,10 +650,10 @@ mod tests {
         }
         // Widened to two lanes while lagging: the wide factor takes the lag with it.
         let (mut now2, mut later2) = (now.widen([1.0, 2.0]), later.widen([1.0, 2.0]));
-        now.after_step(|_| None);
-        later.after_step(|_| None);
-        now2.after_step(|_| None);
-        later2.after_step(|_| None);
+        now.after_step(|| None);
+        later.after_step(|| None);
+        now2.after_step(|| None);
+        later2.after_step(|| None);
         for q in 0..3 {
             assert!(close(&later.all(q), &now.all(q)), "column {q}");
         }

@@ -26,7 +26,7 @@
 //! still busy then — and swapped in. Every answer in between comes from the live factor: exact at
 //! every step.
 
-use super::{Laplacian, Rows, reset_rhs};
+use super::{Laplacian, Rows, anchored, reset_rhs};
 use crate::estimate::incremental::{Dissection, SqrtInfo, dissected_order, fill_reducing_order};
 use crate::online::renewal::{Beside, Due};
 use std::sync::Arc;
@@ -176,9 +176,11 @@ type Built<const K: usize, const L: usize> = (SqrtInfo<K, L>, Vec<[f64; K]>, Opt
 /// A renewal builder's state: its factor, its copy of the rows, its dissection.
 type Building<const K: usize, const L: usize> = (SqrtInfo<K, L>, Rows<K, L>, Option<Dissection>);
 
-/// A job that rewrites (some of) the measurements `y` of a renewal's snapshot, run by the
-/// builder.
-pub(super) type Relinearise<const K: usize> = Box<dyn FnOnce(&mut [[f64; K]]) + Send>;
+/// A job that rewrites the measurements `y` of a renewal's snapshot from right-hand side 1 on,
+/// given the snapshot's solution of right-hand side 0 (anchored, indexed by node: the
+/// headings), run by the builder: it solves that from the factor it built, so that the
+/// robot's step that starts a renewal pays no back-substitution.
+pub(super) type Relinearise<const K: usize> = Box<dyn FnOnce(&mut [[f64; K]], &[f64]) + Send>;
 
 /// A renewal of a Laplacian's factor in progress.
 pub(super) type Renewal<const K: usize, const L: usize> =
@@ -230,12 +232,12 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     }
 
     /// Called once per step, after its events: starts or completes a renewal. A renewal's
-    /// snapshot takes the right-hand sides computed by the job `relinearise` gives (None: the
-    /// current ones), run on the builder's thread; they become the live ones when the renewal
-    /// is swapped in.
+    /// snapshot takes the right-hand sides 1.. computed by the job `relinearise` gives (None:
+    /// the current ones) from the snapshot's solution of right-hand side 0, both on the
+    /// builder's thread; they become the live ones when the renewal is swapped in.
     pub fn after_step(
         &mut self,
-        relinearise: impl FnOnce(&mut Self) -> Option<Relinearise<K>>,
+        relinearise: impl FnOnce() -> Option<Relinearise<K>>,
     ) -> Option<RenewalEvent> {
         self.steps += 1;
         if self.deferred {
@@ -262,8 +264,13 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
             return None;
         }
         let mut rows = self.rows.clone();
-        let relinearise = relinearise(self);
+        let relinearise = relinearise();
         let prior = self.prior.clone();
+        let anchors = if relinearise.is_some() {
+            self.anchors()
+        } else {
+            Vec::new()
+        };
         let newest = n - 1;
         // The builder's work grows with the size of the factor it builds (about the last
         // renewal's fill per row), not with the live factor's fill, which is what grows
@@ -285,10 +292,16 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
             1.0
         };
         let build = move || {
-            if let Some(job) = relinearise {
-                job(&mut rows.y);
-            }
             let (mut f, tree) = build(&rows, &prior, n, Some(newest), order);
+            if let Some(job) = relinearise {
+                // The snapshot's solution of right-hand side 0 from the new factor (as
+                // `Laplacian::all` reads it from the live one), the rows from it, and the
+                // factor's right-hand sides 1.. from those (a forward solve).
+                let [mut x] = f.solve_columns([0]);
+                anchored(&mut x, &anchors, &prior);
+                job(&mut rows.y, &x);
+                reset_rhs(&mut f, &rows, 1);
+            }
             // (Refused, the renewed factor grows as it would have.)
             let _ = f.try_reserve(room.saturating_sub(f.len()));
             let _ = rows.y.try_reserve(y_room.saturating_sub(rows.y.len()));
@@ -431,12 +444,12 @@ mod tests {
         while !l.renewing() {
             let v = l.add_node();
             l.add_edge(v - 1, v, 4.0, [0.1]);
-            let event = l.after_step(|_| None);
+            let event = l.after_step(|| None);
             assert_eq!(event.is_some(), l.renewing(), "started: {event:?}");
             assert!(l.len() <= MIN_VARIABLES + 1, "no renewal started");
         }
         for _ in 0..2 * MIN_DELAY {
-            assert_eq!(l.after_step(|_| None), None);
+            assert_eq!(l.after_step(|| None), None);
         }
         assert!(
             l.renewing() && l.renewals == 0,
@@ -448,7 +461,7 @@ mod tests {
             let v = l.len() - 1;
             l.add_edge(0, v, 1.0, [0.1 * v as f64]);
             closures += 1;
-            let event = l.after_step(|_| None);
+            let event = l.after_step(|| None);
             assert_eq!(event.is_some(), l.renewals == 1, "{event:?}");
             assert!(closures < 10_000, "not collected with the work due");
         }
@@ -461,6 +474,74 @@ mod tests {
         let x = l.all(0);
         let last = x.len() - 1;
         assert!((x[last] - 0.1 * last as f64).abs() < 1e-9, "{}", x[last]);
+    }
+
+    /// A renewal re-linearises its snapshot on the builder, from the headings the builder
+    /// solves from its new factor: once swapped in, the factor answers as one whose rows were
+    /// re-linearised on the step at the snapshot's headings (read from the live factor) and
+    /// then renewed. And the re-linearisation matters: without it the positions differ.
+    #[test]
+    fn a_renewal_relinearises_its_snapshot_on_the_builder() {
+        // Each edge's tail and translation (the position columns are rewritten from them).
+        let mut tails: Vec<(usize, f64)> = Vec::new();
+        let job = |tails: Vec<(usize, f64)>| {
+            move |y: &mut [[f64; 3]], theta: &[f64]| {
+                for (r, &(a, t)) in y.iter_mut().zip(&tails) {
+                    let (s, c) = theta[a].sin_cos();
+                    (r[1], r[2]) = (c * t, s * t);
+                }
+            }
+        };
+        let (mut on_builder, mut on_step, mut never) = (
+            Laplacian::<3>::default(),
+            Laplacian::<3>::default(),
+            Laplacian::<3>::default(),
+        );
+        let mut add = |ls: [&mut Laplacian<3>; 3], a: usize, b: usize, w: f64, y: [f64; 3]| {
+            tails.push((a, y[1]));
+            for l in ls {
+                l.add_edge(a, b, w, y);
+            }
+            tails.clone()
+        };
+        for l in [&mut on_builder, &mut on_step, &mut never] {
+            l.add_node();
+        }
+        let mut started = false;
+        let mut v = 0;
+        while on_builder.renewals == 0 {
+            v += 1;
+            for l in [&mut on_builder, &mut on_step, &mut never] {
+                l.add_node();
+            }
+            let ls = [&mut on_builder, &mut on_step, &mut never];
+            let mut copied = add(ls, v - 1, v, 4.0, [0.02, 1.0, 0.0]);
+            if v % 5 == 0 && v > 30 {
+                // Loop closures whose headings disagree with the chain's.
+                let ls = [&mut on_builder, &mut on_step, &mut never];
+                copied = add(ls, v - 30, v, 1.0, [0.5, 7.0, 0.0]);
+            }
+            let on_builder_event = on_builder
+                .after_step(|| (!started).then(|| Box::new(job(copied.clone())) as Relinearise<3>));
+            if on_builder_event == Some(RenewalEvent::Started) {
+                started = true;
+                let theta = on_step.all(0);
+                let rewrite = job(copied);
+                on_step.relinearise(|y| rewrite(y, &theta), 1);
+            }
+            assert_eq!(on_step.after_step(|| None), on_builder_event, "at node {v}");
+            never.after_step(|| None);
+            assert!(v < 10_000, "no renewal collected");
+        }
+        assert!(on_step.renewals == 1 && never.renewals == 1);
+        let close = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-9);
+        for q in 0..3 {
+            assert!(close(&on_builder.all(q), &on_step.all(q)), "column {q}");
+        }
+        assert!(
+            !close(&on_builder.all(1), &never.all(1)),
+            "the re-linearisation moved nothing"
+        );
     }
 
     /// Any finite positive renewal delay is taken as given: a huge one leaves every renewal
@@ -478,7 +559,7 @@ mod tests {
                 if v % 3 == 0 {
                     l.add_edge(v / 2, v, 1.0, [0.05 * v as f64]);
                 }
-                l.after_step(|_| None);
+                l.after_step(|| None);
             }
             l.renewals
         };
@@ -514,7 +595,7 @@ mod tests {
             if v % 3 == 0 {
                 l.add_edge(v / 2, v, 1.0, [0.05 * v as f64]);
             }
-            l.after_step(|_| None);
+            l.after_step(|| None);
         }
         assert!(l.renewals >= 2, "renewals {}", l.renewals);
         assert_eq!(rows(&l), before, "a reserved array grew");
@@ -575,8 +656,8 @@ mod tests {
                 }
             }
             let renewals = dissected.renewals;
-            dissected.after_step(|_| None);
-            plain.after_step(|_| None);
+            dissected.after_step(|| None);
+            plain.after_step(|| None);
             if dissected.renewals > renewals
                 && let Some(tree) = dissected.dissection.as_ref()
                 && !last.as_ref().is_some_and(|l| Arc::ptr_eq(l, tree))
