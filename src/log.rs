@@ -26,8 +26,11 @@
 //! damaged record and reports the log as cut.
 //!
 //! Replay ([`replay`]) rebuilds the estimator from the metadata, feeds the recorded edges and
-//! compares every new step with the recorded one (all fields but the latency): JSON numbers are
-//! written in shortest round-trip form, so equality is bit equality of the floats.
+//! compares every new step with the recorded one: its outcome (all fields but the latency), the
+//! newest pose after it (`/pose`, read as the recorder read it) and every snapshot taken after it
+//! (the orientations of `/so2lin/estimate` and the poses of `/poses`); the times are recorded
+//! data, not compared. JSON numbers are written in shortest round-trip form, so equality is bit
+//! equality of the floats.
 
 use std::collections::BTreeMap;
 use std::io::{Seek, Write};
@@ -38,8 +41,10 @@ use crate::graph::{Edge, Information, Pose2};
 use crate::online::{OnlineConfig, OnlineEstimator};
 use crate::screening::ScreeningConfig;
 
-/// Version of the so2lin channels' message layout.
-pub const SCHEMA_VERSION: &str = "1";
+/// Version of the so2lin channels' message layout. 2: step messages carry the newest pose after
+/// the step in full precision (`newest`); a log of version 1 replays and verifies too, its
+/// newest poses compared as `/pose` displays them.
+pub const SCHEMA_VERSION: &str = "2";
 
 /// Recording options. Defaults ([`LogOptions::default`]): a snapshot every 100 steps; a flush
 /// (the open chunk closed and written to the sink) after every loop closure, at least every 64
@@ -136,7 +141,7 @@ impl<T: Write + Seek + Send> Sink for T {}
 
 pub(crate) const EDGE_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/draft/2020-12/schema","title":"so2lin.Edge","type":"object","required":["step","from","to","dx","dy","dtheta","information"],"properties":{"step":{"type":"integer","minimum":0},"from":{"type":"integer","minimum":0},"to":{"type":"integer","minimum":0},"dx":{"type":"number"},"dy":{"type":"number"},"dtheta":{"type":"number"},"information":{"description":"upper triangle of the 3x3 information matrix, g2o order I11 I12 I13 I22 I23 I33","type":"array","items":{"type":"number"},"minItems":6,"maxItems":6}},"additionalProperties":false}"##;
 
-pub(crate) const STEP_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/draft/2020-12/schema","title":"so2lin.Step","type":"object","required":["step","latency_ns","edge","kind","rescreened"],"$defs":{"interval":{"type":"object","required":["lo","hi","inconsistent"],"properties":{"lo":{"type":"integer"},"hi":{"type":"integer"},"inconsistent":{"type":"boolean"}}},"decision":{"enum":["determined","ambiguous","inconsistent"]}},"properties":{"step":{"type":"integer","minimum":0},"latency_ns":{"type":"integer","minimum":0},"edge":{"type":"integer","minimum":0},"kind":{"oneOf":[{"type":"object","required":["kind","new_node","joined_components"],"properties":{"kind":{"const":"tree"},"new_node":{"type":"boolean"},"joined_components":{"type":"boolean"}}},{"type":"object","required":["kind","cycle","mean","sd","candidates","decision"],"properties":{"kind":{"const":"cycle"},"cycle":{"type":"integer","minimum":0},"mean":{"type":"number"},"sd":{"type":"number"},"candidates":{"$ref":"#/$defs/interval"},"decision":{"$ref":"#/$defs/decision"}}},{"type":"object","required":["kind"],"properties":{"kind":{"const":"quarantined"}}}]},"rescreened":{"type":"array","items":{"type":"object","required":["cycle","before","after","decision","changed"],"properties":{"cycle":{"type":"integer"},"before":{"$ref":"#/$defs/interval"},"after":{"$ref":"#/$defs/interval"},"decision":{"$ref":"#/$defs/decision"},"changed":{"type":"boolean"}}}},"quarantined":{"description":"the loop closure quarantined at this step (absent when none)","type":"array","items":{"type":"object","required":["edge","from","to","test","statistic","threshold"],"properties":{"edge":{"type":"integer","minimum":0},"from":{"type":"integer","minimum":0},"to":{"type":"integer","minimum":0},"test":{"enum":["cycle_angle","cycle_translation"]},"statistic":{"type":"number"},"threshold":{"type":"number"}}}},"readmitted":{"description":"input indices of quarantined loop closures re-admitted at this step (absent when none)","type":"array","items":{"type":"integer","minimum":0}}}}"##;
+pub(crate) const STEP_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/draft/2020-12/schema","title":"so2lin.Step","type":"object","required":["step","latency_ns","edge","kind","rescreened"],"$defs":{"interval":{"type":"object","required":["lo","hi","inconsistent"],"properties":{"lo":{"type":"integer"},"hi":{"type":"integer"},"inconsistent":{"type":"boolean"}}},"decision":{"enum":["determined","ambiguous","inconsistent"]}},"properties":{"step":{"type":"integer","minimum":0},"latency_ns":{"type":"integer","minimum":0},"edge":{"type":"integer","minimum":0},"kind":{"oneOf":[{"type":"object","required":["kind","new_node","joined_components"],"properties":{"kind":{"const":"tree"},"new_node":{"type":"boolean"},"joined_components":{"type":"boolean"}}},{"type":"object","required":["kind","cycle","mean","sd","candidates","decision"],"properties":{"kind":{"const":"cycle"},"cycle":{"type":"integer","minimum":0},"mean":{"type":"number"},"sd":{"type":"number"},"candidates":{"$ref":"#/$defs/interval"},"decision":{"$ref":"#/$defs/decision"}}},{"type":"object","required":["kind"],"properties":{"kind":{"const":"quarantined"}}}]},"rescreened":{"type":"array","items":{"type":"object","required":["cycle","before","after","decision","changed"],"properties":{"cycle":{"type":"integer"},"before":{"$ref":"#/$defs/interval"},"after":{"$ref":"#/$defs/interval"},"decision":{"$ref":"#/$defs/decision"},"changed":{"type":"boolean"}}}},"quarantined":{"description":"the loop closure quarantined at this step (absent when none)","type":"array","items":{"type":"object","required":["edge","from","to","test","statistic","threshold"],"properties":{"edge":{"type":"integer","minimum":0},"from":{"type":"integer","minimum":0},"to":{"type":"integer","minimum":0},"test":{"enum":["cycle_angle","cycle_translation"]},"statistic":{"type":"number"},"threshold":{"type":"number"}}}},"readmitted":{"description":"input indices of quarantined loop closures re-admitted at this step (absent when none)","type":"array","items":{"type":"integer","minimum":0}},"newest":{"description":"the newest node and its pose after the step, in full precision (absent when there is none)","type":"object","required":["node","x","y","theta"],"properties":{"node":{"type":"integer","minimum":0},"x":{"type":"number"},"y":{"type":"number"},"theta":{"type":"number"}},"additionalProperties":false}}}"##;
 
 pub(crate) const ESTIMATE_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/draft/2020-12/schema","title":"so2lin.Estimate","type":"object","required":["step","nodes","theta"],"properties":{"step":{"type":"integer","minimum":0},"nodes":{"type":"array","items":{"type":"integer","minimum":0}},"theta":{"description":"orientation of each node, radians, unwrapped, anchors 0","type":"array","items":{"type":"number"}}}}"##;
 
@@ -156,6 +161,14 @@ pub struct LogContents {
     pub edges: Vec<Edge>,
     /// Recorded steps (JSON, latency included), in step order.
     pub steps: Vec<Value>,
+    /// The newest pose recorded after each step (`/pose`: its `pose`), by step index.
+    pub newest: BTreeMap<u64, Value>,
+    /// Each snapshot's orientations (`/so2lin/estimate`: its `theta`), with the number of
+    /// steps before it, in the order recorded.
+    pub estimates: Vec<(u64, Value)>,
+    /// Each snapshot's poses (`/poses`: its `poses`), with the number of steps before it, in
+    /// the order recorded.
+    pub poses: Vec<(u64, Value)>,
     /// Whether the file ended early (no end magic / damaged last chunk).
     pub truncated: Option<String>,
 }
@@ -255,6 +268,7 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
     let mut metadata = None;
     let mut topics: BTreeMap<u16, String> = BTreeMap::new();
     let (mut edges, mut steps) = (Vec::new(), Vec::new());
+    let (mut newest, mut estimates, mut poses) = (BTreeMap::new(), Vec::new(), Vec::new());
     let mut truncated = None;
     // Corruption found while reading: (offset reached, what).
     let mut corrupt: Option<(usize, String)> = None;
@@ -318,6 +332,19 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
                         steps.push((step_of(&v)?, v));
                         Ok(())
                     }),
+                    // The Foxglove messages carry their step in the header's sequence.
+                    "/pose" => parse_json(&data).map(|mut v| {
+                        newest
+                            .entry(u64::from(header.sequence))
+                            .or_insert_with(|| v["pose"].take());
+                    }),
+                    "/so2lin/estimate" => parse_json(&data).and_then(|mut v| {
+                        estimates.push((step_of(&v)?, v["theta"].take()));
+                        Ok(())
+                    }),
+                    "/poses" => parse_json(&data).map(|mut v| {
+                        poses.push((u64::from(header.sequence), v["poses"].take()));
+                    }),
                     _ => Ok(()),
                 };
                 if let Err(e) = parsed {
@@ -359,6 +386,9 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
         metadata,
         edges: edges.into_iter().take(n).map(|x| x.1).collect(),
         steps: steps.into_iter().take(n).map(|x| x.1).collect(),
+        newest,
+        estimates,
+        poses,
         truncated,
     })
 }
@@ -568,6 +598,9 @@ fn edge_from_json(v: &Value) -> Result<Edge, LogError> {
 pub struct Divergence {
     /// Step index.
     pub step: usize,
+    /// What differs: the step's outcome (`/so2lin/step`), the newest pose after it (`/pose`),
+    /// or a snapshot taken after it (`/so2lin/estimate`: orientations, `/poses`: poses).
+    pub channel: &'static str,
     /// Recorded (without latency).
     pub recorded: Value,
     /// Replayed.
@@ -588,8 +621,70 @@ pub struct Replay {
     pub estimator: OnlineEstimator,
 }
 
-/// Rebuild the run from a log; with `verify`, compare every step with the recorded one and stop
-/// at the first divergence.
+/// Compare step `k` as replayed (`step`, and the estimator after it) with the recording: its
+/// outcome, the newest pose (read as the recorder read it, after the step) and the snapshots
+/// taken after it (the exact poses). Reads change no later answer (the estimate is the same
+/// bits whenever it is read), and the recorder read the same things at the same steps.
+fn verify_step(
+    log: &LogContents,
+    k: usize,
+    step: &crate::online::Step,
+    recorded: &Value,
+    est: &mut OnlineEstimator,
+) -> Result<Option<Divergence>, LogError> {
+    let diverged = |channel, recorded: Option<&Value>, replayed: Option<Value>| {
+        let recorded = recorded.cloned().unwrap_or(Value::Null);
+        let replayed = replayed.unwrap_or(Value::Null);
+        (recorded != replayed).then_some(Divergence {
+            step: k,
+            channel,
+            recorded,
+            replayed,
+        })
+    };
+    let newest = est.newest().ok().flatten();
+    let mut replayed = step_json(k as u64, step, newest)?;
+    let mut recorded = recorded.clone();
+    if let (Value::Object(rec), Value::Object(rep)) = (&mut recorded, &mut replayed) {
+        rec.insert("latency_ns".into(), json!(0));
+        // Logs written before steps carried the newest pose have it on `/pose` only.
+        if !rec.contains_key("newest") {
+            rep.remove("newest");
+        }
+    }
+    if let Some(d) = diverged("/so2lin/step", Some(&recorded), Some(replayed)) {
+        return Ok(Some(d));
+    }
+    let replayed = newest.map(|(_, p)| record::newest_json(p)).transpose()?;
+    if let Some(d) = diverged("/pose", log.newest.get(&(k as u64)), replayed) {
+        return Ok(Some(d));
+    }
+    let after = k as u64 + 1;
+    let taken = |s: &[(u64, Value)]| s.iter().any(|(at, _)| *at == after);
+    if !taken(&log.estimates) && !taken(&log.poses) {
+        return Ok(None);
+    }
+    // (Poses the replay cannot compute differ from any recorded snapshot.)
+    let [theta, poses] = match est.poses() {
+        Ok(poses) => record::snapshot_json(&poses)?.map(Some),
+        Err(_) => [None, None],
+    };
+    for (channel, recorded, replayed) in [
+        ("/so2lin/estimate", &log.estimates, theta),
+        ("/poses", &log.poses, poses),
+    ] {
+        for (_, v) in recorded.iter().filter(|(at, _)| *at == after) {
+            if let Some(d) = diverged(channel, Some(v), replayed.clone()) {
+                return Ok(Some(d));
+            }
+        }
+    }
+    Ok(None)
+}
+
+/// Rebuild the run from a log; with `verify`, compare every step with the recorded one — its
+/// outcome, the newest pose after it and the snapshots taken after it — and stop at the first
+/// divergence.
 pub fn replay(log: &LogContents, verify: bool) -> Result<Replay, LogError> {
     let config = log.config()?;
     let mut est = OnlineEstimator::new(config).map_err(|e| LogError::Format(e.to_string()))?;
@@ -607,17 +702,8 @@ pub fn replay(log: &LogContents, verify: bool) -> Result<Replay, LogError> {
             .map_err(|e| LogError::Format(format!("step {k}: {e}")))?;
         latency_ns.push(t.elapsed().as_nanos() as u64);
         if verify {
-            let replayed = step_json(k as u64, &step)?;
-            let mut recorded = recorded.clone();
-            if let Value::Object(map) = &mut recorded {
-                map.insert("latency_ns".into(), json!(0));
-            }
-            if replayed != recorded {
-                divergence = Some(Divergence {
-                    step: k,
-                    recorded,
-                    replayed,
-                });
+            divergence = verify_step(log, k, &step, recorded, &mut est)?;
+            if divergence.is_some() {
                 break;
             }
         }

@@ -233,6 +233,73 @@ fn a_recorder_dropped_without_finish_leaves_a_complete_file() {
     assert_eq!(log.steps.len(), w.graph.edge_count());
 }
 
+/// `replay --verify` checks the estimate, not only the steps' outcomes: the newest pose after
+/// every step (in full precision in the step message, and as displayed on `/pose`) and every
+/// snapshot's orientations and poses. A log with any one of them changed — by one unit in the
+/// last place for the full-precision values — diverges at that step, on that channel.
+#[test]
+fn a_replay_checks_the_newest_poses_and_the_snapshots() {
+    let w = simulate(&SimConfig::new(600, 5)).unwrap();
+    let options = LogOptions {
+        snapshot_every: 50,
+        ..LogOptions::default()
+    };
+    let (bytes, _) = record(w.graph.edges(), options);
+    let log = read_log(&bytes).unwrap();
+    let r = replay(&log, true).unwrap();
+    assert!(r.divergence.is_none(), "{:?}", r.divergence);
+    let n = log.steps.len();
+    assert_eq!(log.newest.len(), n, "a /pose message every step");
+    assert!(log.steps.iter().all(|s| s["newest"]["theta"].is_f64()));
+    assert_eq!(
+        log.estimates.len(),
+        n / 50 + 1,
+        "snapshots every 50 steps and at the end"
+    );
+    assert_eq!(log.poses.len(), log.estimates.len());
+    let next_up = |v: &mut serde_json::Value| {
+        let x = v.as_f64().unwrap();
+        *v = serde_json::json!(f64::from_bits(x.to_bits() + 1));
+    };
+    let k = n / 2;
+    let (at, _) = log.estimates[3];
+    type Tamper<'a> = Box<dyn Fn(&mut so2lin::log::LogContents) + 'a>;
+    let tampered: [(&str, usize, Tamper); 5] = [
+        (
+            "/so2lin/step",
+            k,
+            Box::new(|l| next_up(&mut l.steps[k]["newest"]["x"])),
+        ),
+        (
+            "/so2lin/step",
+            k,
+            Box::new(|l| next_up(&mut l.steps[k]["newest"]["theta"])),
+        ),
+        (
+            "/pose",
+            k,
+            Box::new(|l| next_up(&mut l.newest.get_mut(&(k as u64)).unwrap()["position"]["y"])),
+        ),
+        (
+            "/so2lin/estimate",
+            at as usize - 1,
+            Box::new(|l| next_up(&mut l.estimates[3].1[7])),
+        ),
+        (
+            "/poses",
+            at as usize - 1,
+            Box::new(|l| next_up(&mut l.poses[3].1[7]["position"]["x"])),
+        ),
+    ];
+    for (channel, step, tamper) in tampered {
+        let mut bad = read_log(&bytes).unwrap();
+        tamper(&mut bad);
+        let d = replay(&bad, true).unwrap().divergence;
+        let d = d.unwrap_or_else(|| panic!("{channel} changed at step {step}: not found"));
+        assert_eq!((d.channel, d.step), (channel, step));
+    }
+}
+
 /// `/poses` holds `OnlineEstimator::poses()` of the step it was taken at (periodic snapshots
 /// and the final one, all from the maintained factors).
 #[test]

@@ -49,7 +49,7 @@ use super::queue::Queue;
 use super::{
     EDGE_SCHEMA, ESTIMATE_SCHEMA, LogError, LogOptions, SCHEMA_VERSION, STEP_SCHEMA, Sink,
 };
-use crate::graph::{Edge, NodePolicy, Pose2, PoseGraph};
+use crate::graph::{Edge, NodeId, NodePolicy, Pose2, PoseGraph};
 use crate::online::{Decision, OnlineConfig, OnlineError, OnlineEstimator, Step, StepKind};
 
 /// Writes an online run to MCAP (flush policy and threads: [`crate::log`]).
@@ -84,7 +84,8 @@ enum Record {
         step: Box<Step>,
         latency_ns: u64,
         time_ns: u64,
-        newest: Option<Pose2>,
+        /// The newest node and its pose after the step.
+        newest: Option<(NodeId, Pose2)>,
         /// When the step was handed over (the flush interval counts from here).
         handed: Instant,
     },
@@ -356,7 +357,7 @@ impl Recorder {
         if !self.live {
             return;
         }
-        let newest = est.newest().ok().flatten().map(|(_, p)| p);
+        let newest = est.newest().ok().flatten();
         let record = Record::Step {
             edge: *edge,
             step: Box::new(step.clone()),
@@ -580,20 +581,21 @@ impl Writer {
         step: &Step,
         latency_ns: u64,
         time_ns: u64,
-        newest: Option<Pose2>,
+        newest: Option<(NodeId, Pose2)>,
     ) -> Result<(), LogError> {
         self.time_ns = time_ns;
         self.graph
             .add_edge(*edge, NodePolicy::CreateUnknown)
             .map_err(|e| LogError::Format(e.to_string()))?;
         self.put(EDGE, &EdgeMsg::new(self.steps, edge))?;
-        if let Some(p) = newest {
+        if let Some((_, p)) = newest {
             self.put(POSE, &PoseInFrame::new(time_ns, p.x, p.y, p.theta))?;
         }
         let msg = StepMsg {
             step: self.steps,
             latency_ns,
             outcome: step,
+            newest: newest.map(NewestMsg::from),
         };
         self.put(STEP, &msg)?;
         if let StepKind::Cycle(c) = &step.kind {
@@ -691,21 +693,73 @@ impl EdgeMsg {
     }
 }
 
-/// A `/so2lin/step` message: the step's outcome with its index and latency.
+/// A `/so2lin/step` message: the step's outcome with its index and latency, and the newest
+/// pose after it.
 #[derive(serde::Serialize)]
 struct StepMsg<'a> {
     step: u64,
     latency_ns: u64,
     #[serde(flatten)]
     outcome: &'a Step,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    newest: Option<NewestMsg>,
+}
+
+/// The newest pose in a step message, in full precision (`/pose` carries it as Foxglove's
+/// single-precision fields, for display).
+#[derive(serde::Serialize)]
+struct NewestMsg {
+    node: NodeId,
+    x: f64,
+    y: f64,
+    theta: f64,
+}
+
+impl From<(NodeId, Pose2)> for NewestMsg {
+    fn from((node, p): (NodeId, Pose2)) -> Self {
+        Self {
+            node,
+            x: p.x,
+            y: p.y,
+            theta: p.theta,
+        }
+    }
+}
+
+/// `value` as written to a log and read back (Foxglove's fields are single precision, written
+/// as such: a `Value` made directly would widen them).
+fn as_read<T: serde::Serialize>(value: &T) -> Result<Value, LogError> {
+    serde_json::to_vec(value)
+        .and_then(|bytes| serde_json::from_slice(&bytes))
+        .map_err(|e| LogError::Format(e.to_string()))
+}
+
+/// The `pose` of a `/pose` message for the newest pose `p` (how replay compares them).
+pub(super) fn newest_json(p: Pose2) -> Result<Value, LogError> {
+    let mut v = as_read(&PoseInFrame::new(0, p.x, p.y, p.theta))?;
+    Ok(v["pose"].take())
+}
+
+/// The `theta` of a snapshot's `/so2lin/estimate` message and the `poses` of its `/poses`
+/// message, for the snapshot's `poses` (how replay compares them).
+pub(super) fn snapshot_json(poses: &[Pose2]) -> Result<[Value; 2], LogError> {
+    let theta: Vec<f64> = poses.iter().map(|p| p.theta).collect();
+    let pos: Vec<(f64, f64)> = poses.iter().map(|p| (p.x, p.y)).collect();
+    let mut v = as_read(&PosesInFrame::new(0, &pos, &theta))?;
+    Ok([as_read(&theta)?, v["poses"].take()])
 }
 
 /// The step message as JSON with latency 0 (how replay compares steps).
-pub(super) fn step_json(step: u64, s: &Step) -> Result<Value, LogError> {
+pub(super) fn step_json(
+    step: u64,
+    s: &Step,
+    newest: Option<(NodeId, Pose2)>,
+) -> Result<Value, LogError> {
     let msg = StepMsg {
         step,
         latency_ns: 0,
         outcome: s,
+        newest: newest.map(NewestMsg::from),
     };
     serde_json::to_value(&msg).map_err(|e| LogError::Format(e.to_string()))
 }

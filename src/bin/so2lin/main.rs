@@ -1111,7 +1111,7 @@ fn demo(poses: usize, seed: u64, sigma_theta: Option<f64>, log: Option<PathBuf>)
         bytes.len() / 1000,
         match replayed.divergence {
             None => format!("all {} steps identical", replayed.steps),
-            Some(d) => format!("DIVERGES at step {}", d.step),
+            Some(d) => format!("DIVERGES at step {} on {}", d.step, d.channel),
         }
     );
 

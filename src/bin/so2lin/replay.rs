@@ -20,7 +20,7 @@ pub fn run(path: &Path, verify: bool, as_json: bool) -> Result<(), String> {
             "recorded_steps": log.steps.len(),
             "truncated": r.truncated,
             "verified": verify && r.divergence.is_none(),
-            "divergence": r.divergence.as_ref().map(|d| json!({"step": d.step, "recorded": d.recorded, "replayed": d.replayed})),
+            "divergence": r.divergence.as_ref().map(|d| json!({"step": d.step, "channel": d.channel, "recorded": d.recorded, "replayed": d.replayed})),
             "latency_us": lat,
             "source": log.metadata.get("source"),
         });
@@ -39,7 +39,10 @@ pub fn run(path: &Path, verify: bool, as_json: bool) -> Result<(), String> {
             );
         }
         if verify && r.divergence.is_none() {
-            println!("verified: all {} steps identical to the recording", r.steps);
+            println!(
+                "verified: all {} steps identical to the recording (outcomes, newest poses, snapshots)",
+                r.steps
+            );
         }
         println!(
             "replay latency per add_edge (µs): p50 {:.2}, p90 {:.2}, p99 {:.2}, max {:.2}, mean {:.2}",
@@ -48,8 +51,8 @@ pub fn run(path: &Path, verify: bool, as_json: bool) -> Result<(), String> {
     }
     if let Some(d) = r.divergence {
         return Err(format!(
-            "divergence at step {}: recorded {} but replay gave {}",
-            d.step, d.recorded, d.replayed
+            "divergence at step {} on {}: recorded {} but replay gave {}",
+            d.step, d.channel, d.recorded, d.replayed
         ));
     }
     Ok(())
