@@ -144,10 +144,11 @@
 //! predictions with a long backlog (module `predict`). Nor does a step copy a growing array
 //! when the caller reserved room for the stream ([`OnlineEstimator::reserve`]).
 
-use serde::Serialize;
 use smallvec::SmallVec;
 
 mod checkpoint;
+mod chord;
+mod config;
 mod estimate;
 mod evict;
 mod laplacian;
@@ -160,6 +161,7 @@ mod reorder;
 mod replay;
 mod step;
 
+pub use config::{OnlineConfig, OnlineError};
 pub use order::{robot_order, robot_order_indices};
 pub use step::{Counters, CycleStep, Decision, NoiseScales, Rescreen, Step, StepKind};
 
@@ -169,122 +171,12 @@ use quarantine::Held;
 use reorder::CondRenewal;
 
 use crate::cycles::{Cycle, IncrementalBasis};
-use crate::estimate::EstimateError;
-use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::collections::{BTreeMap, BTreeSet};
 
-use crate::batch::RejectedEdge;
 use crate::closure;
-use crate::gamma::{GammaModel, Moments, SingularError};
-use crate::graph::{Edge, GraphError, Information, NodeId, NodePolicy, Pose2, PoseGraph};
-use crate::screening::{ConfigError, Screener, ScreeningConfig, normalised_residual};
-use crate::wraps::WrapError;
-
-/// Settings of the online estimator (deserialised fields left out take their defaults).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, serde::Deserialize)]
-#[serde(default)]
-pub struct OnlineConfig {
-    /// Screening settings (α, degrees of freedom, family-wise, hypothesis cap). Family-wise,
-    /// cycle t is tested at [`ScreeningConfig::online_level`]`(t)` (α-spending).
-    pub screening: ScreeningConfig,
-    /// Quarantine a loop closure whose cycle fails its angle or translation test when it
-    /// arrives (module docs). On by default; off, every edge is added (the cycle is then
-    /// kept ambiguous with its two nearest integers) and no translation test is run.
-    pub quarantine: bool,
-    /// With quarantine and the family-wise setting: also evict accepted loop closures that the
-    /// cycles failing through them incriminate (the path-triggered examination, module docs),
-    /// rebuilding the estimator by a replay without them. On by default: on INTEL with 100
-    /// random false loop closures (3 seeds) it took the quarantined set's precision from 0.82
-    /// to 1.00. The step that evicts costs a replay of the whole stream so far (about the
-    /// stream's time: up to 0.27 s on M3500 with 1000 false edges); clean data never pays it.
-    pub evict: bool,
-    /// The caller reads the estimate after every step, as a robot does (on by default): the
-    /// estimate's factor is then brought up to date inside each step, and while no cycle is
-    /// ambiguous the screening takes a new cycle's moments from it instead of from P_UU
-    /// (module `online::predict`). Off, for a caller that reads rarely or never (the
-    /// screening alone, a replay that checks decisions): the estimate's changes wait until
-    /// it is read (then applied at once, the same answers) and every cycle is conditioned
-    /// through P_UU, 2–3× cheaper per step when nothing is read (`so2lin stream FILE --json
-    /// --estimate none`, robot order, 2026-12-03: M3500 0.027 s of steps against 0.092 s,
-    /// city10000 0.73 s against 1.30 s). The decisions are the same either way; the cycles'
-    /// moments agree to about 1e-12, not bit for bit, so a log replays with the setting it
-    /// was recorded with.
-    pub estimate_every_step: bool,
-    /// How long a renewal of the estimate's factor (a fresh order, built beside the live
-    /// factor on another thread) is built before it is swapped in, as a multiple of the
-    /// default (1.0): the live factor's work it waits for. The default suits edges fed back to
-    /// back (a file streamed as fast as the steps go), where a build spans hundreds of steps and
-    /// sooner would make steps wait for the builder. A front end that sends edges at its
-    /// sensors' rate leaves the builder time between them: a smaller value swaps fresher
-    /// factors in, whose loop closures cost less. Measured (`so2lin stream M3500.g2o --json
-    /// --rate 1000`, robot order, the newest pose read after every step, three runs each,
-    /// 2026-12-05): 1/6 took the p99 from 403–433 to 312–360 µs and the estimate's work from
-    /// 33.5 M to 21.1 M values, with no step waiting (worst step 1.0–2.7 ms against 1.0–1.1);
-    /// back to back, every collection waited and the worst step reached 2.3 ms (delays of 1/2
-    /// and 1/3 waited as well: `benches/MEASUREMENTS.md`, twenty-fourth session). Counted in
-    /// work, not time, so the answers do not depend on the threads' timing; a log replays with
-    /// the value it was recorded with. Finite and positive.
-    pub renewal_delay: f64,
-}
-
-impl Default for OnlineConfig {
-    /// The default screening, quarantine on, evictions on, the estimate read every step.
-    fn default() -> Self {
-        Self {
-            screening: ScreeningConfig::default(),
-            quarantine: true,
-            evict: true,
-            estimate_every_step: true,
-            renewal_delay: 1.0,
-        }
-    }
-}
-
-/// Why an input or query was refused. A refused edge leaves the estimator unchanged.
-#[derive(Clone, Debug, PartialEq, thiserror::Error)]
-pub enum OnlineError {
-    /// The edge failed validation.
-    #[error(transparent)]
-    Edge(#[from] GraphError),
-    /// More edges than the estimator indexes (2³² − 1).
-    #[error("too many edges: the estimator indexes at most {0}")]
-    Capacity(usize),
-    /// [`OnlineEstimator::reserve`]: the allocator refused the room asked for (nothing else
-    /// changed; the estimator works on without it).
-    #[error("cannot reserve room for {nodes} nodes and {edges} edges: the allocator refused")]
-    Reserve {
-        /// Nodes asked for.
-        nodes: usize,
-        /// Edges asked for.
-        edges: usize,
-    },
-    /// Bad settings.
-    #[error(transparent)]
-    Config(#[from] ConfigError),
-    /// [`OnlineConfig::renewal_delay`] is not a finite positive number.
-    #[error("renewal_delay must be a finite number > 0 (got {0})")]
-    RenewalDelay(f64),
-    /// [`OnlineEstimator::poses`]: the exact positions' linear system (the 2×2-block system
-    /// of anisotropic translation information) could not be factored or solved.
-    #[error("poses: {0}")]
-    Poses(#[from] EstimateError),
-    /// [`OnlineEstimator::finish`]: P_γ is numerically singular at the named cycle (the
-    /// second screening's conditioning).
-    #[error("finish: {0}")]
-    Singular(#[from] SingularError),
-    /// [`OnlineEstimator::finish`]: the wraps of the named cycle could not be computed from
-    /// the basis.
-    #[error("finish: {0}")]
-    Wraps(#[from] WrapError),
-    /// A loop closure between two nodes of one component found no path between them in the
-    /// basis graph (an internal inconsistency; the edge is refused, nothing changes).
-    #[error("loop closure {from} → {to}: no path between its nodes in the basis graph")]
-    NoCycle {
-        /// The edge's first node.
-        from: NodeId,
-        /// The edge's second node.
-        to: NodeId,
-    },
-}
+use crate::gamma::{GammaModel, Moments};
+use crate::graph::{Edge, Information, NodeId, NodePolicy, Pose2, PoseGraph};
+use crate::screening::Screener;
 
 /// The online estimator.
 ///
@@ -403,9 +295,11 @@ pub struct OnlineEstimator {
 /// integer is their value (a genuine residual of half a turn would be 5 sd away).
 const ANGLE_SCALE_MAX_SD: f64 = 0.1;
 
-/// Name of the angle test in [`RejectedEdge::test`]: the statistic is the residual in σ.
+/// Name of the angle test in [`RejectedEdge::test`](crate::batch::RejectedEdge::test): the
+/// statistic is the residual in σ.
 pub const ANGLE_TEST: &str = "cycle_angle";
-/// Name of the translation test in [`RejectedEdge::test`]: the statistic is χ²₂.
+/// Name of the translation test in [`RejectedEdge::test`](crate::batch::RejectedEdge::test):
+/// the statistic is χ²₂.
 pub const TRANSLATION_TEST: &str = "cycle_translation";
 
 impl std::fmt::Debug for OnlineEstimator {
@@ -674,178 +568,6 @@ impl OnlineEstimator {
         self.counters.steps += 1;
     }
 
-    /// A loop closure between connected nodes a and b (input index `input`). Its cycle is the
-    /// one [`IncrementalBasis::probe`] finds; with quarantine on, it is tested first —
-    /// translation closure at `level`, then the angle (the cycle's screening) — and a failed
-    /// test returns the rejection with nothing changed. Otherwise the edge is added: basis,
-    /// γ model, conditioning, estimate.
-    fn add_chord(
-        &mut self,
-        input: usize,
-        edge: Edge,
-        a: usize,
-        b: usize,
-        level: f64,
-    ) -> Result<Result<Step, RejectedEdge>, OnlineError> {
-        let e = self.graph.edge_count();
-        // At its arrival within a replay, the path it failed on before may serve ([`replay`]).
-        let arrival = input == self.arrivals;
-        let hinted = (self.hints.as_ref())
-            .filter(|_| arrival)
-            .and_then(|h| h.cycle(input, &self.paths, e));
-        let cycle = (hinted.or_else(|| self.basis.probe(a, b))).ok_or(OnlineError::NoCycle {
-            from: edge.from(),
-            to: edge.to(),
-        })?;
-        let quarantine = self.config.quarantine;
-        let reject = |test: &'static str, statistic: f64, threshold: f64| RejectedEdge {
-            edge: input,
-            from: edge.from(),
-            to: edge.to(),
-            test,
-            statistic,
-            threshold,
-        };
-        let noise = closure::EdgeNoise::of(&edge);
-        debug_assert_eq!(self.noise.len(), e, "one closure noise per graph edge");
-        if quarantine {
-            let limit = closure::threshold(level);
-            let far = closure::threshold(self.eviction_level(self.model.len()));
-            let (angle_scale, translation_scale) = (self.angle_scale(), self.translation_scale());
-            // Failing the eviction level's threshold and the test's by far (so the test's own)
-            // at the first end decides everything below, the re-test schedule included.
-            let decided = |chi2: f64| {
-                let tested = chi2 / translation_scale;
-                closure::fails(tested, far) && quarantine::translation_by_far(tested, limit)
-            };
-            let translation =
-                (self.closure_with(&cycle.terms, &[noise], angle_scale, &decided)).map(|c| c.chi2);
-            if let Some(chi2) = translation {
-                let tested = chi2 / translation_scale;
-                // A doubtful loop closure that passes: a copy of the state before anything of
-                // it is kept, from which a replay starts should it be evicted (module
-                // `checkpoint`).
-                if arrival
-                    && !closure::fails(tested, limit)
-                    && checkpoint::doubtful(cycle.terms.len(), tested, limit)
-                {
-                    self.checkpoint_before_doubtful();
-                }
-                if !closure::fails(tested, far) {
-                    self.scale.push(chi2);
-                }
-                if closure::fails(tested, limit) {
-                    if closure::fails(tested, far) {
-                        self.suspect(&cycle, edge);
-                    }
-                    if arrival {
-                        self.paths.failed(input, &cycle, &self.input_of);
-                    }
-                    return Ok(Err(reject(TRANSLATION_TEST, tested, limit)));
-                }
-            }
-        }
-        self.sigma2.push(edge.sigma2());
-        self.delta.push(edge.delta());
-        self.noise.push(noise);
-        let t = self.model.push_cycle(&cycle, &self.sigma2, &self.delta);
-        self.screener.grow(t + 1);
-        let q = self.config.screening.quantile_at(level);
-        // The angle test at the angle noise scale s_θ (module docs): the residual to the
-        // nearest integer in sd·√s_θ; s_θ = 1 is the interval holding no integer. A cycle
-        // that fails it is not determined.
-        let root = self.angle_scale().sqrt();
-        let fails = |m: Moments| quarantine && normalised_residual(m) / root > q;
-        // The moments from the estimate's factor when it holds exactly the determined
-        // cycles' information (module docs: one factor); otherwise from P_UU.
-        let predicted = self.predict(&cycle, &edge, a, b);
-        let (m, iv, determined) = match predicted {
-            Some(m) => {
-                let (iv, value) = (self.screener).screen_given(t, m, q, || edges_of(&cycle), fails);
-                if let Some(v) = value {
-                    self.backlog.push((t as u32, v, m.sd()));
-                } else {
-                    self.estimate.undo_chord();
-                }
-                (m, iv, value.is_some())
-            }
-            None => {
-                self.sync_conditioner();
-                (self.screener).screen_unless(&self.model, t, q, || edges_of(&cycle), fails)
-            }
-        };
-        let residual = normalised_residual(m) / root;
-        let far = self.config.screening.quantile_at(self.eviction_level(t));
-        if quarantine && m.sd() < ANGLE_SCALE_MAX_SD && residual <= far {
-            let r = normalised_residual(m);
-            self.angle_scale.push(r * r);
-        }
-        // With s_θ ≤ 1 a cycle whose interval holds no integer fails this test too; with
-        // s_θ > 1 (the declared angle noise too tight, [`closure::Scale`]) such a cycle is
-        // judged in the noise the data show: accepted as inconsistent, its loop closure kept.
-        if fails(m) {
-            if predicted.is_some() {
-                self.estimate.undo_chord();
-            }
-            self.model.pop_cycle(&cycle);
-            self.screener.truncate(t);
-            self.sigma2.pop();
-            self.delta.pop();
-            self.noise.pop();
-            if iv.inconsistent || residual > far {
-                self.suspect(&cycle, edge);
-            }
-            if arrival {
-                self.paths.failed(input, &cycle, &self.input_of);
-            }
-            return Ok(Err(reject(ANGLE_TEST, residual, q)));
-        }
-        // Cannot fail with CreateUnknown between known nodes.
-        self.graph.add_edge(edge, NodePolicy::CreateUnknown)?;
-        self.basis.commit(a, b, edge.sigma2(), true);
-        self.accept(input);
-
-        self.counters.cycles += 1;
-        self.chord_cycle[e] = t as u32;
-        for term in &cycle.terms[1..] {
-            if self.chord_cycle[term.edge as usize] != NONE {
-                self.users[term.edge as usize].push(t as u32);
-            }
-        }
-        self.cycles.push(cycle);
-        self.gamma.push(0);
-        let mut rescreened = Vec::new();
-        let kept = predicted.is_some() && determined;
-        if kept {
-            // No cycle is ambiguous: none to re-screen, and P_UU does not grow.
-            self.estimate.keep_chord();
-        } else if determined {
-            self.propagate(t, &mut rescreened);
-            self.maybe_reorder();
-        } else {
-            self.ambiguous.insert(t, m);
-        }
-        // The new chord's row with its wrap, then the right-hand sides of the chords whose wrap
-        // moved with the re-screened cycles.
-        let changed =
-            self.update_wraps(std::iter::once(t).chain(rescreened.iter().map(|r| r.cycle)));
-        self.push_edge(e, a, b, &changed, kept);
-        self.after_step();
-        Ok(Ok(Step {
-            edge: input,
-            kind: StepKind::Cycle(CycleStep {
-                cycle: t,
-                mean: m.mean,
-                sd: m.sd(),
-                candidates: iv,
-                decision: Decision::of(iv, determined),
-            }),
-            rescreened,
-            quarantined: Vec::new(),
-            readmitted: Vec::new(),
-        }))
-    }
-
     /// `δ_e − 2π k_e`: the unwrapped measurement of edge e.
     fn wrapped(&self, e: usize) -> f64 {
         self.delta[e] - std::f64::consts::TAU * self.wrap[e] as f64
@@ -879,103 +601,6 @@ impl OnlineEstimator {
         self.advance_reorder();
     }
 
-    /// `Σ ±k_e` over a cycle's path (every term but the chord, term 0) at the current wraps.
-    fn path_wraps(&self, cycle: &Cycle) -> i64 {
-        cycle.terms[1..].iter().fold(0i64, |acc, t| {
-            acc.saturating_add(i64::from(t.sign).saturating_mul(self.wrap[t.edge as usize]))
-        })
-    }
-
-    /// The current best γ of cycle i: its determined value, or the rounded conditional mean
-    /// (clamped to its candidates) of an ambiguous one.
-    fn best_gamma(&self, i: usize) -> i64 {
-        let iv = self.screener.interval(i);
-        if self.screener.is_determined(i) {
-            return iv.lo;
-        }
-        match self.ambiguous.get(&i) {
-            Some(m) => (m.mean.round() as i64).clamp(iv.lo, iv.hi),
-            None => iv.lo,
-        }
-    }
-
-    /// Refresh γ of the given cycles and the wraps that depend on them (forward substitution
-    /// `k_chord = γ_t − Σ_rest ±k_e`, in cycle order, cascading to later cycles through a chord
-    /// whose wrap changed). Returns the edges whose wrap changed.
-    fn update_wraps(&mut self, cycles: impl Iterator<Item = usize>) -> Vec<usize> {
-        let mut work = BTreeSet::new();
-        for c in cycles {
-            let g = self.best_gamma(c);
-            if self.gamma[c] != g || c + 1 == self.gamma.len() {
-                self.gamma[c] = g;
-                work.insert(c);
-            }
-        }
-        let mut changed = Vec::new();
-        while let Some(c) = work.pop_first() {
-            let cyc = &self.cycles[c];
-            let rest = self.path_wraps(cyc);
-            let k = i64::from(cyc.terms[0].sign).saturating_mul(self.gamma[c].saturating_sub(rest));
-            let ch = cyc.chord() as usize;
-            if self.wrap[ch] != k || c + 1 == self.gamma.len() {
-                if self.wrap[ch] != k {
-                    changed.push(ch);
-                }
-                self.wrap[ch] = k;
-                work.extend(self.users[ch].iter().map(|&u| u as usize));
-            }
-        }
-        changed
-    }
-
-    /// After cycle `first` is determined: re-screen the ambiguous cycles sharing an edge with
-    /// it (fresh moments), determine those left with one candidate, and continue from them.
-    fn propagate(&mut self, first: usize, out: &mut Vec<Rescreen>) {
-        let mut queue = VecDeque::from([first]);
-        while let Some(c) = queue.pop_front() {
-            let neighbours: Vec<usize> = self
-                .model
-                .row(c)
-                .iter()
-                .map(|&(j, _)| j as usize)
-                .filter(|j| self.ambiguous.contains_key(j))
-                .collect();
-            for i in neighbours {
-                let before = self.screener.interval(i);
-                let cycles = &self.cycles;
-                let (m, after, determined) = self.screener.screen(
-                    &self.model,
-                    i,
-                    self.config.screening.online_quantile(i),
-                    || edges_of(&cycles[i]),
-                );
-                self.counters.rescreens += 1;
-                if determined {
-                    self.ambiguous.remove(&i);
-                    queue.push_back(i);
-                } else {
-                    self.ambiguous.insert(i, m);
-                }
-                let decision = Decision::of(after, determined);
-                match out.iter_mut().find(|x| x.cycle == i) {
-                    Some(x) => {
-                        x.after = after;
-                        x.decision = decision;
-                        x.changed = x.before != after || determined;
-                    }
-                    None => out.push(Rescreen {
-                        cycle: i,
-                        before,
-                        after,
-                        decision,
-                        changed: before != after || determined,
-                    }),
-                }
-            }
-        }
-        out.sort_by_key(|x| x.cycle);
-    }
-
     fn refresh_counters(&mut self) {
         self.counters.quarantined = self.held.len();
         self.counters.determined = self.screener.cond.len() + self.backlog.len();
@@ -991,10 +616,6 @@ impl OnlineEstimator {
 
 /// No cycle.
 const NONE: u32 = u32::MAX;
-
-fn edges_of(c: &Cycle) -> Vec<usize> {
-    c.terms.iter().map(|t| t.edge as usize).collect()
-}
 
 #[cfg(test)]
 mod tests {
