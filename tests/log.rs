@@ -291,6 +291,15 @@ fn a_replay_checks_the_newest_poses_and_the_snapshots() {
             Box::new(|l| next_up(&mut l.poses[3].1[7]["position"]["x"])),
         ),
     ];
+    // A log of schema version 1 (steps without the newest pose) verifies against `/pose`.
+    let mut older = read_log(&bytes).unwrap();
+    for s in &mut older.steps {
+        s.as_object_mut().unwrap().remove("newest");
+    }
+    assert!(replay(&older, true).unwrap().divergence.is_none());
+    next_up(&mut older.newest.get_mut(&(k as u64)).unwrap()["position"]["x"]);
+    let d = replay(&older, true).unwrap().divergence.unwrap();
+    assert_eq!((d.channel, d.step), ("/pose", k));
     for (channel, step, tamper) in tampered {
         let mut bad = read_log(&bytes).unwrap();
         tamper(&mut bad);
