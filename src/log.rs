@@ -161,14 +161,15 @@ pub struct LogContents {
     pub edges: Vec<Edge>,
     /// Recorded steps (JSON, latency included), in step order.
     pub steps: Vec<Value>,
-    /// The newest pose recorded after each step (`/pose`: its `pose`), by step index.
-    pub newest: BTreeMap<u64, Value>,
-    /// Each snapshot's orientations (`/so2lin/estimate`: its `theta`), with the number of
+    /// The newest pose after each step as `/pose` shows it (x, y, and the yaw quaternion's z
+    /// and w, rounded, single precision), by step index.
+    pub newest: BTreeMap<u64, [f32; 4]>,
+    /// Each snapshot's orientations (`/so2lin/estimate`), with the number of steps before it,
+    /// in the order recorded.
+    pub estimates: Vec<(u64, Vec<f64>)>,
+    /// Each snapshot's poses as `/poses` shows them (as [`Self::newest`]), with the number of
     /// steps before it, in the order recorded.
-    pub estimates: Vec<(u64, Value)>,
-    /// Each snapshot's poses (`/poses`: its `poses`), with the number of steps before it, in
-    /// the order recorded.
-    pub poses: Vec<(u64, Value)>,
+    pub poses: Vec<(u64, Vec<[f32; 4]>)>,
     /// Whether the file ended early (no end magic / damaged last chunk).
     pub truncated: Option<String>,
 }
@@ -333,17 +334,24 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
                         Ok(())
                     }),
                     // The Foxglove messages carry their step in the header's sequence.
-                    "/pose" => parse_json(&data).map(|mut v| {
-                        newest
-                            .entry(u64::from(header.sequence))
-                            .or_insert_with(|| v["pose"].take());
-                    }),
-                    "/so2lin/estimate" => parse_json(&data).and_then(|mut v| {
-                        estimates.push((step_of(&v)?, v["theta"].take()));
+                    "/pose" => parse_json(&data).and_then(|v| {
+                        let pose = displayed_pose(&v["pose"])?;
+                        newest.entry(u64::from(header.sequence)).or_insert(pose);
                         Ok(())
                     }),
-                    "/poses" => parse_json(&data).map(|mut v| {
-                        poses.push((u64::from(header.sequence), v["poses"].take()));
+                    "/so2lin/estimate" => parse_json(&data).and_then(|v| {
+                        let theta = (v["theta"].as_array())
+                            .ok_or_else(|| LogError::Format("an estimate without theta".into()))?;
+                        let theta = theta.iter().map(number).collect::<Result<_, _>>()?;
+                        estimates.push((step_of(&v)?, theta));
+                        Ok(())
+                    }),
+                    "/poses" => parse_json(&data).and_then(|v| {
+                        let all = (v["poses"].as_array())
+                            .ok_or_else(|| LogError::Format("poses without poses".into()))?;
+                        let all = all.iter().map(displayed_pose).collect::<Result<_, _>>()?;
+                        poses.push((u64::from(header.sequence), all));
+                        Ok(())
                     }),
                     _ => Ok(()),
                 };
@@ -391,6 +399,37 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
         poses,
         truncated,
     })
+}
+
+/// A number of a message (`null`: how JSON writes a value that is not finite).
+fn number(v: &Value) -> Result<f64, LogError> {
+    match v {
+        Value::Null => Ok(f64::NAN),
+        _ => v
+            .as_f64()
+            .ok_or_else(|| LogError::Format(format!("{v} where a number belongs"))),
+    }
+}
+
+/// A Foxglove pose as displayed (x, y, the quaternion's z and w), each number read as the
+/// single-precision value it was written from (its shortest decimal form, parsed as `f32`).
+fn displayed_pose(pose: &Value) -> Result<[f32; 4], LogError> {
+    let field = |outer: &str, inner: &str| -> Result<f32, LogError> {
+        let v = &pose[outer][inner];
+        let x = number(v)?;
+        // The shortest form of an f32, read back as an f64, prints as that same form.
+        Ok(if x.is_finite() {
+            x.to_string().parse::<f32>().unwrap_or(x as f32)
+        } else {
+            x as f32
+        })
+    };
+    Ok([
+        field("position", "x")?,
+        field("position", "y")?,
+        field("orientation", "z")?,
+        field("orientation", "w")?,
+    ])
 }
 
 /// The step index a message carries.
@@ -632,15 +671,11 @@ fn verify_step(
     recorded: &Value,
     est: &mut OnlineEstimator,
 ) -> Result<Option<Divergence>, LogError> {
-    let diverged = |channel, recorded: Option<&Value>, replayed: Option<Value>| {
-        let recorded = recorded.cloned().unwrap_or(Value::Null);
-        let replayed = replayed.unwrap_or(Value::Null);
-        (recorded != replayed).then_some(Divergence {
-            step: k,
-            channel,
-            recorded,
-            replayed,
-        })
+    let diverged = |channel, recorded, replayed| Divergence {
+        step: k,
+        channel,
+        recorded,
+        replayed,
     };
     let newest = est.newest().ok().flatten();
     let mut replayed = step_json(k as u64, step, newest)?;
@@ -652,34 +687,74 @@ fn verify_step(
             rep.remove("newest");
         }
     }
-    if let Some(d) = diverged("/so2lin/step", Some(&recorded), Some(replayed)) {
-        return Ok(Some(d));
+    if recorded != replayed {
+        return Ok(Some(diverged("/so2lin/step", recorded, replayed)));
     }
-    let replayed = newest.map(|(_, p)| record::newest_json(p)).transpose()?;
-    if let Some(d) = diverged("/pose", log.newest.get(&(k as u64)), replayed) {
-        return Ok(Some(d));
+    let shown = newest.map(|(_, p)| foxglove::displayed((p.x, p.y), p.theta));
+    let was = log.newest.get(&(k as u64)).copied();
+    let same_pose = |a: &[f32; 4], b: &[f32; 4]| same(a, b, same_f32);
+    if !same(was.as_slice(), shown.as_slice(), same_pose) {
+        return Ok(Some(diverged("/pose", json!(was), json!(shown))));
     }
     let after = k as u64 + 1;
-    let taken = |s: &[(u64, Value)]| s.iter().any(|(at, _)| *at == after);
-    if !taken(&log.estimates) && !taken(&log.poses) {
+    let estimates = log.estimates.iter().filter(|(at, _)| *at == after);
+    let snapshots = log.poses.iter().filter(|(at, _)| *at == after);
+    if estimates.clone().next().is_none() && snapshots.clone().next().is_none() {
         return Ok(None);
     }
     // (Poses the replay cannot compute differ from any recorded snapshot.)
-    let [theta, poses] = match est.poses() {
-        Ok(poses) => record::snapshot_json(&poses)?.map(Some),
-        Err(_) => [None, None],
-    };
-    for (channel, recorded, replayed) in [
-        ("/so2lin/estimate", &log.estimates, theta),
-        ("/poses", &log.poses, poses),
-    ] {
-        for (_, v) in recorded.iter().filter(|(at, _)| *at == after) {
-            if let Some(d) = diverged(channel, Some(v), replayed.clone()) {
-                return Ok(Some(d));
-            }
+    let poses = est.poses().unwrap_or_default();
+    let theta: Vec<f64> = poses.iter().map(|p| p.theta).collect();
+    let shown: Vec<[f32; 4]> = (poses.iter())
+        .map(|p| foxglove::displayed((p.x, p.y), p.theta))
+        .collect();
+    for (_, was) in estimates {
+        if let Some((i, was, now)) = first_difference(was, &theta, |a, b| same_f64(*a, *b)) {
+            return Ok(Some(diverged(
+                "/so2lin/estimate",
+                was_at(i, was),
+                was_at(i, now),
+            )));
+        }
+    }
+    for (_, was) in snapshots {
+        if let Some((i, was, now)) = first_difference(was, &shown, same_pose) {
+            return Ok(Some(diverged("/poses", was_at(i, was), was_at(i, now))));
         }
     }
     Ok(None)
+}
+
+/// Equal to the bit, a NaN equal to any NaN (written as `null`, read back as NaN).
+fn same_f64(a: f64, b: f64) -> bool {
+    a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan())
+}
+
+/// [`same_f64`] in single precision.
+fn same_f32(a: &f32, b: &f32) -> bool {
+    a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan())
+}
+
+/// Slices equal element by element under `eq`.
+fn same<T>(a: &[T], b: &[T], eq: impl Fn(&T, &T) -> bool) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| eq(x, y))
+}
+
+/// The first index where `was` and `now` differ under `eq` (their lengths, if one is the
+/// other's start), with the two entries there (`None` past an end).
+fn first_difference<'a, T>(
+    was: &'a [T],
+    now: &'a [T],
+    eq: impl Fn(&T, &T) -> bool,
+) -> Option<(usize, Option<&'a T>, Option<&'a T>)> {
+    let i = (0..was.len().max(now.len()))
+        .find(|&i| !matches!((was.get(i), now.get(i)), (Some(a), Some(b)) if eq(a, b)))?;
+    Some((i, was.get(i), now.get(i)))
+}
+
+/// One entry of a snapshot, for a divergence: its index and value (null past the end).
+fn was_at<T: serde::Serialize>(i: usize, v: Option<&T>) -> Value {
+    json!({ "index": i, "value": v })
 }
 
 /// Rebuild the run from a log; with `verify`, compare every step with the recorded one — its

@@ -261,6 +261,8 @@ fn a_replay_checks_the_newest_poses_and_the_snapshots() {
         let x = v.as_f64().unwrap();
         *v = serde_json::json!(f64::from_bits(x.to_bits() + 1));
     };
+    let up = |x: &mut f64| *x = f64::from_bits(x.to_bits() + 1);
+    let up32 = |x: &mut f32| *x = f32::from_bits(x.to_bits() + 1);
     let k = n / 2;
     let (at, _) = log.estimates[3];
     type Tamper<'a> = Box<dyn Fn(&mut so2lin::log::LogContents) + 'a>;
@@ -278,17 +280,17 @@ fn a_replay_checks_the_newest_poses_and_the_snapshots() {
         (
             "/pose",
             k,
-            Box::new(|l| next_up(&mut l.newest.get_mut(&(k as u64)).unwrap()["position"]["y"])),
+            Box::new(|l| up32(&mut l.newest.get_mut(&(k as u64)).unwrap()[1])),
         ),
         (
             "/so2lin/estimate",
             at as usize - 1,
-            Box::new(|l| next_up(&mut l.estimates[3].1[7])),
+            Box::new(|l| up(&mut l.estimates[3].1[7])),
         ),
         (
             "/poses",
             at as usize - 1,
-            Box::new(|l| next_up(&mut l.poses[3].1[7]["position"]["x"])),
+            Box::new(|l| up32(&mut l.poses[3].1[7][0])),
         ),
     ];
     // A log of schema version 1 (steps without the newest pose) verifies against `/pose`.
@@ -297,7 +299,7 @@ fn a_replay_checks_the_newest_poses_and_the_snapshots() {
         s.as_object_mut().unwrap().remove("newest");
     }
     assert!(replay(&older, true).unwrap().divergence.is_none());
-    next_up(&mut older.newest.get_mut(&(k as u64)).unwrap()["position"]["x"]);
+    up32(&mut older.newest.get_mut(&(k as u64)).unwrap()[0]);
     let d = replay(&older, true).unwrap().divergence.unwrap();
     assert_eq!((d.channel, d.step), ("/pose", k));
     for (channel, step, tamper) in tampered {

@@ -90,6 +90,13 @@ impl Quaternion {
     }
 }
 
+/// A planar pose as `/pose` and `/poses` show it: the position's x and y, and the yaw
+/// quaternion's z and w, each rounded and in single precision as written.
+pub(super) fn displayed((x, y): (f64, f64), theta: f64) -> [f32; 4] {
+    let (p, q) = (Point::planar((x, y)), Quaternion::yaw(theta));
+    [p.x, p.y, q.z, q.w]
+}
+
 #[derive(Clone, Copy, Serialize)]
 struct Pose {
     position: Point,

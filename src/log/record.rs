@@ -726,29 +726,6 @@ impl From<(NodeId, Pose2)> for NewestMsg {
     }
 }
 
-/// `value` as written to a log and read back (Foxglove's fields are single precision, written
-/// as such: a `Value` made directly would widen them).
-fn as_read<T: serde::Serialize>(value: &T) -> Result<Value, LogError> {
-    serde_json::to_vec(value)
-        .and_then(|bytes| serde_json::from_slice(&bytes))
-        .map_err(|e| LogError::Format(e.to_string()))
-}
-
-/// The `pose` of a `/pose` message for the newest pose `p` (how replay compares them).
-pub(super) fn newest_json(p: Pose2) -> Result<Value, LogError> {
-    let mut v = as_read(&PoseInFrame::new(0, p.x, p.y, p.theta))?;
-    Ok(v["pose"].take())
-}
-
-/// The `theta` of a snapshot's `/so2lin/estimate` message and the `poses` of its `/poses`
-/// message, for the snapshot's `poses` (how replay compares them).
-pub(super) fn snapshot_json(poses: &[Pose2]) -> Result<[Value; 2], LogError> {
-    let theta: Vec<f64> = poses.iter().map(|p| p.theta).collect();
-    let pos: Vec<(f64, f64)> = poses.iter().map(|p| (p.x, p.y)).collect();
-    let mut v = as_read(&PosesInFrame::new(0, &pos, &theta))?;
-    Ok([as_read(&theta)?, v["poses"].take()])
-}
-
 /// The step message as JSON with latency 0 (how replay compares steps).
 pub(super) fn step_json(
     step: u64,
