@@ -353,7 +353,11 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
                 self.moved[q] += (y[q] - old[q]).abs();
             }
         }
-        self.send(Msg::SetY(e as u32, y));
+        self.send(Msg::SetY(
+            e as u32,
+            y,
+            std::array::from_fn(|q| y[q] != old[q]),
+        ));
     }
 
     /// Add the change of edge e's difference `x_b − x_a` that its new row made to the bound

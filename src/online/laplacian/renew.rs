@@ -154,8 +154,9 @@ pub(crate) enum Msg<const K: usize, const L: usize> {
     Unprior((usize, [f64; L])),
     /// An edge: its ends, √w (per lane) and y.
     Edge(u32, u32, [f64; L], [f64; K]),
-    /// Edge e's y is now this.
-    SetY(u32, [f64; K]),
+    /// Edge e's y is now this in the components marked (the others as the builder has them:
+    /// a wrap moves the heading only, and the builder's positions may be re-linearised).
+    SetY(u32, [f64; K], [bool; K]),
     /// Every edge's y is now this (a re-linearisation: [`Laplacian::relinearise`]).
     Relinearised(Vec<[f64; K]>),
 }
@@ -329,9 +330,10 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
                     rows.y = y;
                     reset_rhs(f, rows, 0);
                 }
-                Msg::SetY(e, y) => {
+                Msg::SetY(e, y, changed) => {
                     let e = e as usize;
                     let old = *rows.y.get(e)?;
+                    let y = std::array::from_fn(|q| if changed[q] { y[q] } else { old[q] });
                     rows.y[e] = y;
                     let shift = rows.shift(e, old, y);
                     // The last edge's row is the last row added unless a prior's was removed
@@ -479,7 +481,9 @@ mod tests {
     /// A renewal re-linearises its snapshot on the builder, from the headings the builder
     /// solves from its new factor: once swapped in, the factor answers as one whose rows were
     /// re-linearised on the step at the snapshot's headings (read from the live factor) and
-    /// then renewed. And the re-linearisation matters: without it the positions differ.
+    /// then renewed — also when an old edge's wrap moves while it is built (the builder keeps
+    /// its re-linearised position for that edge: the live factor's is older). And the
+    /// re-linearisation matters: without it the positions differ.
     #[test]
     fn a_renewal_relinearises_its_snapshot_on_the_builder() {
         // Each edge's tail and translation (the position columns are rewritten from them).
@@ -507,7 +511,7 @@ mod tests {
         for l in [&mut on_builder, &mut on_step, &mut never] {
             l.add_node();
         }
-        let mut started = false;
+        let (mut started, mut wrapped) = (false, false);
         let mut v = 0;
         while on_builder.renewals == 0 {
             v += 1;
@@ -520,6 +524,15 @@ mod tests {
                 // Loop closures whose headings disagree with the chain's.
                 let ls = [&mut on_builder, &mut on_step, &mut never];
                 copied = add(ls, v - 30, v, 1.0, [0.5, 7.0, 0.0]);
+            }
+            if started && !wrapped {
+                // An old edge's wrap moves while the renewal is built (as a re-screen moves a
+                // chord's): its heading only, its position measurement as each factor has it.
+                for l in [&mut on_builder, &mut on_step, &mut never] {
+                    let [h, px, py] = l.y(5);
+                    l.set_y(5, [h + 0.3, px, py]);
+                }
+                wrapped = true;
             }
             let on_builder_event = on_builder
                 .after_step(|| (!started).then(|| Box::new(job(copied.clone())) as Relinearise<3>));
