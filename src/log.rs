@@ -165,10 +165,10 @@ pub struct LogContents {
     /// and w, rounded, single precision), by step index.
     pub newest: BTreeMap<u64, [f32; 4]>,
     /// Each snapshot's orientations (`/so2lin/estimate`), with the number of steps before it,
-    /// in the order recorded.
+    /// in step order.
     pub estimates: Vec<(u64, Vec<f64>)>,
     /// Each snapshot's poses as `/poses` shows them (as [`Self::newest`]), with the number of
-    /// steps before it, in the order recorded.
+    /// steps before it, in step order.
     pub poses: Vec<(u64, Vec<[f32; 4]>)>,
     /// Whether the file ended early (no end magic / damaged last chunk).
     pub truncated: Option<String>,
@@ -395,10 +395,16 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
         edges: edges.into_iter().take(n).map(|x| x.1).collect(),
         steps: steps.into_iter().take(n).map(|x| x.1).collect(),
         newest,
-        estimates,
-        poses,
+        estimates: sorted(estimates),
+        poses: sorted(poses),
         truncated,
     })
+}
+
+/// Snapshots in step order (stable: two at one step keep the order they were written in).
+fn sorted<T>(mut snapshots: Vec<(u64, T)>) -> Vec<(u64, T)> {
+    snapshots.sort_by_key(|s| s.0);
+    snapshots
 }
 
 /// A number of a message (`null`: how JSON writes a value that is not finite).
@@ -692,14 +698,14 @@ fn verify_step(
     }
     let shown = newest.map(|(_, p)| foxglove::displayed((p.x, p.y), p.theta));
     let was = log.newest.get(&(k as u64)).copied();
-    let same_pose = |a: &[f32; 4], b: &[f32; 4]| same(a, b, same_f32);
-    if !same(was.as_slice(), shown.as_slice(), same_pose) {
+    let same_pose = |a: &[f32; 4], b: &[f32; 4]| first_difference(a, b, same_f32).is_none();
+    if first_difference(was.as_slice(), shown.as_slice(), same_pose).is_some() {
         return Ok(Some(diverged("/pose", json!(was), json!(shown))));
     }
+    // The snapshots taken after this step (both lists are in step order).
     let after = k as u64 + 1;
-    let estimates = log.estimates.iter().filter(|(at, _)| *at == after);
-    let snapshots = log.poses.iter().filter(|(at, _)| *at == after);
-    if estimates.clone().next().is_none() && snapshots.clone().next().is_none() {
+    let (estimates, snapshots) = (taken_at(&log.estimates, after), taken_at(&log.poses, after));
+    if estimates.is_empty() && snapshots.is_empty() {
         return Ok(None);
     }
     // (Poses the replay cannot compute differ from any recorded snapshot.)
@@ -725,19 +731,22 @@ fn verify_step(
     Ok(None)
 }
 
+/// The snapshots of `s` (in step order) taken after `steps` steps.
+fn taken_at<T>(s: &[(u64, T)], steps: u64) -> &[(u64, T)] {
+    let from = s.partition_point(|(at, _)| *at < steps);
+    // (`max`: a caller's list out of order finds nothing rather than panicking.)
+    let to = s.partition_point(|(at, _)| *at <= steps).max(from);
+    &s[from..to]
+}
+
 /// Equal to the bit, a NaN equal to any NaN (written as `null`, read back as NaN).
 fn same_f64(a: f64, b: f64) -> bool {
     a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan())
 }
 
-/// [`same_f64`] in single precision.
+/// [`same_f64`] in single precision (widening keeps bits apart and NaNs NaN).
 fn same_f32(a: &f32, b: &f32) -> bool {
-    a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan())
-}
-
-/// Slices equal element by element under `eq`.
-fn same<T>(a: &[T], b: &[T], eq: impl Fn(&T, &T) -> bool) -> bool {
-    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| eq(x, y))
+    same_f64(f64::from(*a), f64::from(*b))
 }
 
 /// The first index where `was` and `now` differ under `eq` (their lengths, if one is the

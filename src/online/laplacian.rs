@@ -432,18 +432,22 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     /// [`Self::all`] for the right-hand sides `columns`, in one back-substitution.
     pub fn all_columns<const M: usize>(&mut self, columns: [usize; M]) -> [Vec<f64>; M] {
         let mut xs = self.factor.solve_columns(columns);
-        let anchors = self.anchors();
+        let anchors: Vec<usize> = (0..self.len())
+            .map(|v| self.anchor[self.components.find(v)])
+            .collect();
         for x in &mut xs {
-            anchored(x, &anchors, &self.prior);
+            for (v, &a) in anchors.iter().enumerate() {
+                if a != v {
+                    x[v] -= x[a];
+                }
+            }
+            for (xv, &p) in x.iter_mut().zip(&self.prior) {
+                if p != [0.0; L] {
+                    *xv = 0.0;
+                }
+            }
         }
         xs
-    }
-
-    /// Each node's anchor (the first node of its component).
-    fn anchors(&mut self) -> Vec<usize> {
-        (0..self.len())
-            .map(|v| self.anchor[self.components.find(v)])
-            .collect()
     }
 
     /// Marginal variance of node v in the anchored system: `Var(θ_v − θ_anchor)` (0 for an
@@ -573,22 +577,6 @@ impl<const K: usize> Laplacian<K> {
             renewals: self.renewals,
             waits: self.waits,
             ..Laplacian::default()
-        }
-    }
-}
-
-/// Make a solution `x` (indexed by node) relative to each node's anchor (`anchors`,
-/// [`Laplacian::anchors`]), which removes the rounding of the common mode; an anchor with a
-/// prior row (`prior`) is exactly 0.
-fn anchored<const L: usize>(x: &mut [f64], anchors: &[usize], prior: &[[f64; L]]) {
-    for (v, &a) in anchors.iter().enumerate() {
-        if a != v {
-            x[v] -= x[a];
-        }
-    }
-    for (xv, &p) in x.iter_mut().zip(prior) {
-        if p != [0.0; L] {
-            *xv = 0.0;
         }
     }
 }

@@ -26,7 +26,7 @@
 //! still busy then — and swapped in. Every answer in between comes from the live factor: exact at
 //! every step.
 
-use super::{Laplacian, Rows, anchored, reset_rhs};
+use super::{Laplacian, Rows, reset_rhs};
 use crate::estimate::incremental::{Dissection, SqrtInfo, dissected_order, fill_reducing_order};
 use crate::online::renewal::{Beside, Due};
 use std::sync::Arc;
@@ -178,9 +178,11 @@ type Built<const K: usize, const L: usize> = (SqrtInfo<K, L>, Vec<[f64; K]>, Opt
 type Building<const K: usize, const L: usize> = (SqrtInfo<K, L>, Rows<K, L>, Option<Dissection>);
 
 /// A job that rewrites the measurements `y` of a renewal's snapshot from right-hand side 1 on,
-/// given the snapshot's solution of right-hand side 0 (anchored, indexed by node: the
-/// headings), run by the builder: it solves that from the factor it built, so that the
-/// robot's step that starts a renewal pays no back-substitution.
+/// given the snapshot's solution of right-hand side 0 (indexed by node: the headings), run by
+/// the builder: it solves that from the factor it built, so that the robot's step that starts
+/// a renewal pays no back-substitution. (Not made relative to the anchors as
+/// [`Laplacian::all`] reads the live factor: an anchor's prior holds it at 0 to rounding, and
+/// a solution from another factor differs in its last bits anyway.)
 pub(super) type Relinearise<const K: usize> = Box<dyn FnOnce(&mut [[f64; K]], &[f64]) + Send>;
 
 /// A renewal of a Laplacian's factor in progress.
@@ -267,11 +269,6 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         let mut rows = self.rows.clone();
         let relinearise = relinearise();
         let prior = self.prior.clone();
-        let anchors = if relinearise.is_some() {
-            self.anchors()
-        } else {
-            Vec::new()
-        };
         let newest = n - 1;
         // The builder's work grows with the size of the factor it builds (about the last
         // renewal's fill per row), not with the live factor's fill, which is what grows
@@ -295,11 +292,9 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         let build = move || {
             let (mut f, tree) = build(&rows, &prior, n, Some(newest), order);
             if let Some(job) = relinearise {
-                // The snapshot's solution of right-hand side 0 from the new factor (as
-                // `Laplacian::all` reads it from the live one), the rows from it, and the
-                // factor's right-hand sides 1.. from those (a forward solve).
-                let [mut x] = f.solve_columns([0]);
-                anchored(&mut x, &anchors, &prior);
+                // The snapshot's solution of right-hand side 0 from the new factor, the rows
+                // from it, and the factor's right-hand sides 1.. from those (a forward solve).
+                let [x] = f.solve_columns([0]);
                 job(&mut rows.y, &x);
                 reset_rhs(&mut f, &rows, 1);
             }
