@@ -12,6 +12,7 @@
 //! | `/graph` | `foxglove.SceneUpdate`: odometry and loop-closure edges as line lists, ambiguous loops highlighted (with each snapshot) |
 //! | `/poses` | `foxglove.PosesInFrame` in frame `map`: the current poses ([`OnlineEstimator::poses`]: orientations with least-squares positions), with each snapshot |
 //! | `/pose` | `foxglove.PoseInFrame` in frame `map`: the newest node's pose ([`OnlineEstimator::newest`]), every step |
+//! | `/so2lin/maintenance` | each renewal of the estimate's factor that [`OnlineEstimator::maintain`] made between two steps ([`Recorder::maintain`]): the number of steps before it, the factor's variables and nonzeros |
 //!
 //! A metadata record `so2lin` holds the version, configuration, source and
 //! [`SCHEMA_VERSION`]. The log time of a step's messages (`log_time`, `publish_time` and every
@@ -29,7 +30,9 @@
 //! compares every new step with the recorded one: its outcome (all fields but the latency), the
 //! newest pose after it (`/pose`, read as the recorder read it) and every snapshot taken after it
 //! (the orientations of `/so2lin/estimate` and the poses of `/poses`); the times are recorded
-//! data, not compared. JSON numbers are written in shortest round-trip form, so equality is bit
+//! data, not compared. A renewal recorded on `/so2lin/maintenance` is made again after the same
+//! step (a renewal changes the answers' last bits), the snapshots taken before it compared
+//! before it, and its factor's size compared. JSON numbers are written in shortest round-trip form, so equality is bit
 //! equality of the floats.
 
 use std::collections::BTreeMap;
@@ -43,8 +46,10 @@ use crate::screening::ScreeningConfig;
 
 /// Version of the so2lin channels' message layout. 2: step messages carry the newest pose after
 /// the step in full precision (`newest`); a log of version 1 replays and verifies too, its
-/// newest poses compared as `/pose` displays them.
-pub const SCHEMA_VERSION: &str = "2";
+/// newest poses compared as `/pose` displays them. 3: the channel `/so2lin/maintenance`
+/// (renewals made between steps, which a replay must make too); logs of versions 1 and 2 have
+/// none and replay as before.
+pub const SCHEMA_VERSION: &str = "3";
 
 /// Recording options. Defaults ([`LogOptions::default`]): a snapshot every 100 steps; a flush
 /// (the open chunk closed and written to the sink) after every loop closure, at least every 64
@@ -143,6 +148,8 @@ pub(crate) const EDGE_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/dra
 
 pub(crate) const STEP_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/draft/2020-12/schema","title":"so2lin.Step","type":"object","required":["step","latency_ns","edge","kind","rescreened"],"$defs":{"interval":{"type":"object","required":["lo","hi","inconsistent"],"properties":{"lo":{"type":"integer"},"hi":{"type":"integer"},"inconsistent":{"type":"boolean"}}},"decision":{"enum":["determined","ambiguous","inconsistent"]}},"properties":{"step":{"type":"integer","minimum":0},"latency_ns":{"type":"integer","minimum":0},"edge":{"type":"integer","minimum":0},"kind":{"oneOf":[{"type":"object","required":["kind","new_node","joined_components"],"properties":{"kind":{"const":"tree"},"new_node":{"type":"boolean"},"joined_components":{"type":"boolean"}}},{"type":"object","required":["kind","cycle","mean","sd","candidates","decision"],"properties":{"kind":{"const":"cycle"},"cycle":{"type":"integer","minimum":0},"mean":{"type":"number"},"sd":{"type":"number"},"candidates":{"$ref":"#/$defs/interval"},"decision":{"$ref":"#/$defs/decision"}}},{"type":"object","required":["kind"],"properties":{"kind":{"const":"quarantined"}}}]},"rescreened":{"type":"array","items":{"type":"object","required":["cycle","before","after","decision","changed"],"properties":{"cycle":{"type":"integer"},"before":{"$ref":"#/$defs/interval"},"after":{"$ref":"#/$defs/interval"},"decision":{"$ref":"#/$defs/decision"},"changed":{"type":"boolean"}}}},"quarantined":{"description":"the loop closure quarantined at this step (absent when none)","type":"array","items":{"type":"object","required":["edge","from","to","test","statistic","threshold"],"properties":{"edge":{"type":"integer","minimum":0},"from":{"type":"integer","minimum":0},"to":{"type":"integer","minimum":0},"test":{"enum":["cycle_angle","cycle_translation"]},"statistic":{"type":"number"},"threshold":{"type":"number"}}}},"readmitted":{"description":"input indices of quarantined loop closures re-admitted at this step (absent when none)","type":"array","items":{"type":"integer","minimum":0}},"newest":{"description":"the newest node and its pose after the step, in full precision (absent when there is none)","type":"object","required":["node","x","y","theta"],"properties":{"node":{"type":"integer","minimum":0},"x":{"type":"number"},"y":{"type":"number"},"theta":{"type":"number"}},"additionalProperties":false}}}"##;
 
+pub(crate) const MAINTENANCE_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/draft/2020-12/schema","title":"so2lin.Maintenance","description":"OnlineEstimator::maintain renewed the estimate's factor between two steps","type":"object","required":["step","variables","nonzeros"],"properties":{"step":{"description":"the number of steps before it","type":"integer","minimum":0},"variables":{"type":"integer","minimum":0},"nonzeros":{"type":"integer","minimum":0}},"additionalProperties":false}"##;
+
 pub(crate) const ESTIMATE_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/draft/2020-12/schema","title":"so2lin.Estimate","type":"object","required":["step","nodes","theta"],"properties":{"step":{"type":"integer","minimum":0},"nodes":{"type":"array","items":{"type":"integer","minimum":0}},"theta":{"description":"orientation of each node, radians, unwrapped, anchors 0","type":"array","items":{"type":"number"}}}}"##;
 
 mod foxglove;
@@ -151,6 +158,18 @@ mod record;
 
 use record::step_json;
 pub use record::{Backpressure, Recorder};
+
+/// A renewal of the estimate's factor by [`OnlineEstimator::maintain`], as recorded.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Maintained {
+    /// The number of steps before it.
+    pub steps: u64,
+    /// The snapshots recorded before it ([`LogContents::estimates`] and
+    /// [`LogContents::poses`]: how many of each), which a replay compares before renewing.
+    pub snapshots_before: (usize, usize),
+    /// Variables and nonzeros of the factor it built.
+    pub factor: (usize, usize),
+}
 
 /// What [`read_log`] found.
 #[derive(Debug)]
@@ -170,6 +189,9 @@ pub struct LogContents {
     /// Each snapshot's poses as `/poses` shows them (as [`Self::newest`]), with the number of
     /// steps before it, in step order.
     pub poses: Vec<(u64, Vec<[f32; 4]>)>,
+    /// The renewals [`OnlineEstimator::maintain`] made between steps (`/so2lin/maintenance`),
+    /// in the order recorded.
+    pub maintenance: Vec<Maintained>,
     /// Whether the file ended early (no end magic / damaged last chunk).
     pub truncated: Option<String>,
 }
@@ -270,6 +292,7 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
     let mut topics: BTreeMap<u16, String> = BTreeMap::new();
     let (mut edges, mut steps) = (Vec::new(), Vec::new());
     let (mut newest, mut estimates, mut poses) = (BTreeMap::new(), Vec::new(), Vec::new());
+    let mut maintenance = Vec::new();
     let mut truncated = None;
     // Corruption found while reading: (offset reached, what).
     let mut corrupt: Option<(usize, String)> = None;
@@ -346,6 +369,19 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
                         estimates.push((step_of(&v)?, theta));
                         Ok(())
                     }),
+                    "/so2lin/maintenance" => parse_json(&data).and_then(|v| {
+                        let count = |k: &str| {
+                            (v[k].as_u64().and_then(|x| usize::try_from(x).ok())).ok_or_else(|| {
+                                LogError::Format(format!("a maintenance without {k}"))
+                            })
+                        };
+                        maintenance.push(Maintained {
+                            steps: step_of(&v)?,
+                            snapshots_before: (estimates.len(), poses.len()),
+                            factor: (count("variables")?, count("nonzeros")?),
+                        });
+                        Ok(())
+                    }),
                     "/poses" => parse_json(&data).and_then(|v| {
                         let all = (v["poses"].as_array())
                             .ok_or_else(|| LogError::Format("poses without poses".into()))?;
@@ -397,6 +433,7 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
         newest,
         estimates: sorted(estimates),
         poses: sorted(poses),
+        maintenance,
         truncated,
     })
 }
@@ -667,9 +704,9 @@ pub struct Replay {
 }
 
 /// Compare step `k` as replayed (`step`, and the estimator after it) with the recording: its
-/// outcome, the newest pose (read as the recorder read it, after the step) and the snapshots
-/// taken after it (the exact poses). Reads change no later answer (the estimate is the same
-/// bits whenever it is read), and the recorder read the same things at the same steps.
+/// outcome and the newest pose after it (read as the recorder read it). Reads change no later
+/// answer (the estimate is the same bits whenever it is read), and the recorder read the same
+/// things at the same steps.
 fn verify_step(
     log: &LogContents,
     k: usize,
@@ -677,12 +714,6 @@ fn verify_step(
     recorded: &Value,
     est: &mut OnlineEstimator,
 ) -> Result<Option<Divergence>, LogError> {
-    let diverged = |channel, recorded, replayed| Divergence {
-        step: k,
-        channel,
-        recorded,
-        replayed,
-    };
     let newest = est.newest().ok().flatten();
     let mut replayed = step_json(k as u64, step, newest)?;
     let mut recorded = recorded.clone();
@@ -694,19 +725,41 @@ fn verify_step(
         }
     }
     if recorded != replayed {
-        return Ok(Some(diverged("/so2lin/step", recorded, replayed)));
+        return Ok(Some(diverged(k, "/so2lin/step", recorded, replayed)));
     }
     let shown = newest.map(|(_, p)| foxglove::displayed((p.x, p.y), p.theta));
     let was = log.newest.get(&(k as u64)).copied();
-    let same_pose = |a: &[f32; 4], b: &[f32; 4]| first_difference(a, b, same_f32).is_none();
     if first_difference(was.as_slice(), shown.as_slice(), same_pose).is_some() {
-        return Ok(Some(diverged("/pose", json!(was), json!(shown))));
+        return Ok(Some(diverged(k, "/pose", json!(was), json!(shown))));
     }
-    // The snapshots taken after this step (both lists are in step order).
-    let after = k as u64 + 1;
-    let (estimates, snapshots) = (taken_at(&log.estimates, after), taken_at(&log.poses, after));
+    Ok(None)
+}
+
+/// A divergence at step `k`.
+fn diverged(k: usize, channel: &'static str, recorded: Value, replayed: Value) -> Divergence {
+    Divergence {
+        step: k,
+        channel,
+        recorded,
+        replayed,
+    }
+}
+
+/// Equal as `/pose` and `/poses` show them.
+fn same_pose(a: &[f32; 4], b: &[f32; 4]) -> bool {
+    first_difference(a, b, same_f32).is_none()
+}
+
+/// Compare the recorded snapshots `estimates` and `poses` (taken after step `k`) with the
+/// replayed estimator's exact poses now.
+fn verify_snapshots(
+    k: usize,
+    estimates: &[(u64, Vec<f64>)],
+    snapshots: &[(u64, Vec<[f32; 4]>)],
+    est: &mut OnlineEstimator,
+) -> Option<Divergence> {
     if estimates.is_empty() && snapshots.is_empty() {
-        return Ok(None);
+        return None;
     }
     // (Poses the replay cannot compute differ from any recorded snapshot.)
     let poses = est.poses().unwrap_or_default();
@@ -716,19 +769,75 @@ fn verify_step(
         .collect();
     for (_, was) in estimates {
         if let Some((i, was, now)) = first_difference(was, &theta, |a, b| same_f64(*a, *b)) {
-            return Ok(Some(diverged(
-                "/so2lin/estimate",
-                was_at(i, was),
-                was_at(i, now),
-            )));
+            let (was, now) = (was_at(i, was), was_at(i, now));
+            return Some(diverged(k, "/so2lin/estimate", was, now));
         }
     }
     for (_, was) in snapshots {
         if let Some((i, was, now)) = first_difference(was, &shown, same_pose) {
-            return Ok(Some(diverged("/poses", was_at(i, was), was_at(i, now))));
+            return Some(diverged(k, "/poses", was_at(i, was), was_at(i, now)));
         }
     }
-    Ok(None)
+    None
+}
+
+/// After step `k` has been replayed (and verified): the recorded renewals by
+/// [`OnlineEstimator::maintain`] that followed it, each made again, and with `verify` the
+/// snapshots taken after the step compared in between, each with the estimator as it was when
+/// it was taken. `next` is the first maintenance not yet replayed (advanced past these).
+fn after_step(
+    log: &LogContents,
+    k: usize,
+    est: &mut OnlineEstimator,
+    next: &mut usize,
+    verify: bool,
+) -> Option<Divergence> {
+    let after = k as u64 + 1;
+    let (estimates, snapshots) = (taken_at(&log.estimates, after), taken_at(&log.poses, after));
+    // Where the snapshots after this step start in the log's lists.
+    let first = (
+        log.estimates.len() - taken_from(&log.estimates, after),
+        log.poses.len() - taken_from(&log.poses, after),
+    );
+    let (mut e, mut p) = (0, 0);
+    while let Some(m) = log.maintenance.get(*next).filter(|m| m.steps <= after) {
+        *next += 1;
+        if m.steps < after {
+            continue;
+        }
+        if verify {
+            let (e_to, p_to) = (
+                m.snapshots_before
+                    .0
+                    .saturating_sub(first.0)
+                    .clamp(e, estimates.len()),
+                m.snapshots_before
+                    .1
+                    .saturating_sub(first.1)
+                    .clamp(p, snapshots.len()),
+            );
+            let d = verify_snapshots(k, &estimates[e..e_to], &snapshots[p..p_to], est);
+            if d.is_some() {
+                return d;
+            }
+            (e, p) = (e_to, p_to);
+        }
+        let done = est.maintain();
+        let made = done.renewed.then_some((done.variables, done.nonzeros));
+        if verify && made != Some(m.factor) {
+            let (recorded, replayed) = (json!({ "factor": m.factor }), json!({ "factor": made }));
+            return Some(diverged(k, "/so2lin/maintenance", recorded, replayed));
+        }
+    }
+    if verify {
+        return verify_snapshots(k, &estimates[e..], &snapshots[p..], est);
+    }
+    None
+}
+
+/// How many snapshots of `s` (in step order) were taken after `steps` steps or later.
+fn taken_from<T>(s: &[(u64, T)], steps: u64) -> usize {
+    s.len() - s.partition_point(|(at, _)| *at < steps)
 }
 
 /// The snapshots of `s` (in step order) taken after `steps` steps.
@@ -779,6 +888,8 @@ pub fn replay(log: &LogContents, verify: bool) -> Result<Replay, LogError> {
     let _ = est.reserve(nodes.len(), log.edges.len());
     let mut latency_ns = Vec::with_capacity(log.edges.len());
     let mut divergence = None;
+    // The first recorded maintenance not replayed yet.
+    let mut next = 0;
     for (k, (edge, recorded)) in log.edges.iter().zip(&log.steps).enumerate() {
         let t = std::time::Instant::now();
         let step = est
@@ -787,9 +898,12 @@ pub fn replay(log: &LogContents, verify: bool) -> Result<Replay, LogError> {
         latency_ns.push(t.elapsed().as_nanos() as u64);
         if verify {
             divergence = verify_step(log, k, &step, recorded, &mut est)?;
-            if divergence.is_some() {
-                break;
-            }
+        }
+        if divergence.is_none() {
+            divergence = after_step(log, k, &mut est, &mut next, verify);
+        }
+        if divergence.is_some() {
+            break;
         }
     }
     Ok(Replay {

@@ -143,6 +143,14 @@
 //! them more than that there, `online/reorder.rs`), or when the screening returns to it from
 //! predictions with a long backlog (module `predict`). Nor does a step copy a growing array
 //! when the caller reserved room for the stream ([`OnlineEstimator::reserve`]).
+//!
+//! **Idle time** ([`OnlineEstimator::maintain`]): a caller with time between steps (a robot
+//! waiting for its next sensor reading) lets the estimator renew the estimate's factor then, on
+//! its own thread, as soon as [`MAINTAIN_APPENDED`] nodes were appended since the factor's
+//! order was made. A renewal beside the steps is collected only after the live factor has done
+//! a build's worth of work, with the nodes appended meanwhile at the end of its order, which
+//! every loop closure to an older node walks; renewed between steps the factor is fresh when
+//! the next step arrives. The steps then do a half to a quarter of the work.
 
 use smallvec::SmallVec;
 
@@ -163,7 +171,24 @@ mod step;
 
 pub use config::{OnlineConfig, OnlineError};
 pub use order::{robot_order, robot_order_indices};
-pub use step::{Counters, CycleStep, Decision, NoiseScales, Rescreen, Step, StepKind};
+pub use step::{Counters, CycleStep, Decision, Maintenance, NoiseScales, Rescreen, Step, StepKind};
+
+/// Nodes appended to the estimate's factor since its order was made from which
+/// [`OnlineEstimator::maintain`] renews it (or the graph's nodes over [`MAINTAIN_FRACTION`],
+/// if more). Measured (`so2lin stream FILE --json --maintain`, robot order, the newest pose
+/// read after every step, back to back, 2026-12-05): every 24, 48 or 96 nodes, M3500's p99
+/// was 53–64, 62–66 and 90–103 µs for 0.21–0.24, 0.11 and 0.05–0.06 s of maintenance (three
+/// runs each); city10000's 81–86, 72–80 and 85–105 µs for 2.1–2.2, 1.1 and 0.5–0.6 s (two).
+pub const MAINTAIN_APPENDED: usize = 48;
+
+/// On large graphs [`OnlineEstimator::maintain`] renews once the nodes appended since the
+/// factor's order was made are this fraction of all of them: a build costs about a
+/// microsecond per node or more, and the steps gain no more from renewing sooner. Measured on
+/// a 30 000-pose simulated world (`so2lin simulate --poses 30000`, as [`MAINTAIN_APPENDED`]):
+/// every 48 nodes p99 338 µs and 13.7 s of maintenance, from n/256 329 µs and 8.2 s, from
+/// n/128 329 µs and 4.4 s (one run each; without maintenance 1.37 ms); city10000 from n/128
+/// 71–72 µs against 71–73 every 48 nodes (two runs each).
+pub const MAINTAIN_FRACTION: usize = 128;
 
 use estimate::{Estimate, Op};
 use evict::Suspect;
@@ -471,6 +496,65 @@ impl OnlineEstimator {
         self.add_edge_inner(edge)
     }
 
+    /// Use idle time between steps (a robot waiting for its next sensor reading) to keep the
+    /// estimate fast: if at least [`MAINTAIN_APPENDED`] nodes (and a [`MAINTAIN_FRACTION`]th
+    /// of the graph's) were appended to the estimate's factor since its order was made, the
+    /// factor is renewed now, on this thread — the
+    /// renewal a builder thread would otherwise make beside the steps, and collect later with
+    /// the nodes appended meanwhile at the end of its order — with every position row taken
+    /// at the current headings. The steps after it walk a fresh factor, and any renewal in
+    /// progress beside is dropped. It blocks for one sparse factorization in a fill-reducing
+    /// order when due (the longest call: 3–5 ms on M3500's 3 500 nodes, 13–20 ms on
+    /// city10000's 10 000, about 0.1 s on a 30 000-pose world on the development machine), and
+    /// costs nothing otherwise: a caller with a deadline asks [`Self::maintenance_due`] first.
+    /// The answers stay exact;
+    /// like a renewal it changes their last bits, so a log records when it was called
+    /// ([`crate::log::Recorder::maintain`]) and a replay calls it at the same points.
+    ///
+    /// ```
+    /// use so2lin::online::{OnlineConfig, OnlineEstimator, robot_order};
+    /// use so2lin::sim::{SimConfig, simulate};
+    ///
+    /// let world = simulate(&SimConfig::new(600, 1)).expect("a simulated world");
+    /// let mut est = OnlineEstimator::new(OnlineConfig::default())?;
+    /// for edge in robot_order(world.graph.edges()) {
+    ///     est.add_edge(edge)?;
+    ///     let (_node, _pose) = est.newest()?.expect("a node");
+    ///     // ... and while waiting for the next reading:
+    ///     est.maintain();
+    /// }
+    /// assert!(est.counters().maintenance_renewals > 0);
+    /// # Ok::<(), so2lin::online::OnlineError>(())
+    /// ```
+    pub fn maintain(&mut self) -> Maintenance {
+        let built = self.estimate.maintain(&self.graph, self.maintain_after());
+        self.refresh_counters();
+        match built {
+            Some((variables, nonzeros)) => Maintenance {
+                renewed: true,
+                variables,
+                nonzeros,
+            },
+            None => Maintenance::default(),
+        }
+    }
+
+    /// Whether [`Self::maintain`] would renew the estimate's factor now, and if so the nodes of
+    /// the factor it would build: a renewal costs about as much as the last one per node (it
+    /// grows with the graph), so a caller with a deadline can tell whether it fits before the
+    /// next reading — `if let Some(n) = est.maintenance_due() { if n as f64 * per_node <
+    /// time_left { est.maintain(); } }` with `per_node` the last renewal's time over its
+    /// [`Maintenance::variables`].
+    pub fn maintenance_due(&mut self) -> Option<usize> {
+        self.estimate
+            .maintenance_due(&self.graph, self.maintain_after())
+    }
+
+    /// Nodes appended since the factor's order was made from which [`Self::maintain`] renews.
+    fn maintain_after(&self) -> usize {
+        MAINTAIN_APPENDED.max(self.graph.node_count() / MAINTAIN_FRACTION)
+    }
+
     /// The translation closure of a cycle whose terms are graph edges and, numbered from the
     /// graph's edge count on, the edges `new` (not in the graph: a loop closure being tested),
     /// from the closure noise kept per edge, at both ends of its chord — the second end left
@@ -610,6 +694,7 @@ impl OnlineEstimator {
         self.counters.estimate_renewals = renewals;
         self.counters.renewal_waits = waits + self.cond_waits;
         self.counters.estimate_relinearisations = self.estimate.relinearisations;
+        self.counters.maintenance_renewals = self.estimate.renewed_now();
         self.counters.replayed_arrivals = self.replay_work;
     }
 }

@@ -506,6 +506,50 @@ fn stream_at_a_rate_paces_the_edges_and_answers_the_same() {
     }
 }
 
+/// `stream --maintain` gives the estimator the time between steps: it renews the estimate's
+/// factor there (counted apart from the steps, whose estimate work falls), answers as without
+/// it (the same screening), and a log of it replays verified (the renewals are recorded).
+#[test]
+fn stream_maintain_renews_between_steps_and_replays() {
+    let g = simulated("stream_maintain.g2o", &["--poses", "800", "--seed", "6"]);
+    let plain = run_json(["stream".as_ref(), "--json".as_ref(), g.as_os_str()]);
+    assert!(plain["maintenance"].is_null(), "{plain}");
+    let log = scratch("stream_maintain.mcap");
+    let kept = run_json([
+        "stream".as_ref(),
+        "--json".as_ref(),
+        "--maintain".as_ref(),
+        "--log".as_ref(),
+        log.as_os_str(),
+        g.as_os_str(),
+    ]);
+    let m = &kept["maintenance"];
+    assert!(m["renewals"].as_u64().unwrap() >= 5, "{kept}");
+    assert!(m["seconds"].as_f64().unwrap() > 0.0 && m["worst_ms"].as_f64().unwrap() > 0.0);
+    for key in ["steps", "cycles", "determined", "hypotheses"] {
+        assert_eq!(plain[key], kept[key], "{key}");
+    }
+    let work = |v: &serde_json::Value| v["work_per_step"]["estimate_entries"]["total"].as_u64();
+    assert!(work(&kept) < work(&plain), "{kept}");
+    let replayed = run_json([
+        "replay".as_ref(),
+        "--verify".as_ref(),
+        "--json".as_ref(),
+        log.as_os_str(),
+    ]);
+    assert_eq!(replayed["verified"], true, "{replayed}");
+    let text = so2lin()
+        .args(["stream", "--maintain"])
+        .arg(&g)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&text.stdout);
+    assert!(
+        text.contains("maintenance between the steps (not in their latency)"),
+        "{text}"
+    );
+}
+
 #[test]
 fn screen_reports_one_anchor_per_component() {
     let f = scratch("forest.g2o");

@@ -6,7 +6,7 @@ use std::io::{Cursor, Seek, SeekFrom, Write};
 
 use so2lin::graph::Edge;
 use so2lin::log::{LogOptions, Recorder, read_log, replay};
-use so2lin::online::{OnlineConfig, OnlineEstimator, StepKind};
+use so2lin::online::{OnlineConfig, OnlineEstimator, StepKind, robot_order};
 use so2lin::sim::{SimConfig, simulate};
 
 use common::SharedSink as Shared;
@@ -570,4 +570,64 @@ fn quarantined_edges_are_recorded_replayed_and_drawn() {
     let first = &lines[3]["points"][0];
     let a = est.graph().node_index(edges[rejected[0]].from()).unwrap();
     assert!((first["x"].as_f64().unwrap() - poses[a].x).abs() < 1e-3);
+}
+
+/// A run given idle time between steps (`Recorder::maintain` after every step) replays bit for
+/// bit: each renewal the maintenance made is recorded on `/so2lin/maintenance`, the replay
+/// makes it at the same point, and the snapshots taken after the same step are compared with
+/// the estimator as it was when each was taken (before the renewal, or after it for the final
+/// one). A log without those records, or with one a step late, diverges.
+#[test]
+fn maintenance_between_steps_is_recorded_and_replayed() {
+    let w = simulate(&SimConfig::new(900, 6)).unwrap();
+    let edges = robot_order(w.graph.edges());
+    let options = LogOptions {
+        snapshot_every: 5,
+        ..LogOptions::default()
+    };
+    let config = OnlineConfig::default();
+    let sink = Shared::default();
+    let mut est = OnlineEstimator::new(config).unwrap();
+    let mut rec = Recorder::new(Box::new(sink.clone()), &config, "test", options).unwrap();
+    let mut made = Vec::new();
+    for (k, e) in edges.iter().enumerate() {
+        rec.add_edge(&mut est, *e).unwrap();
+        let done = rec.maintain(&mut est);
+        if done.renewed {
+            made.push((k as u64 + 1, (done.variables, done.nonzeros)));
+        }
+    }
+    // The last step's renewal comes before the final snapshot.
+    let renewed = est.maintain();
+    assert!(!renewed.renewed, "nothing due twice in a row");
+    rec.finish(&mut est).unwrap();
+    let bytes = sink.bytes();
+    let log = read_log(&bytes).unwrap();
+    assert!(made.len() >= 8, "{made:?}");
+    assert_eq!(est.counters().maintenance_renewals, made.len());
+    let recorded: Vec<_> = log
+        .maintenance
+        .iter()
+        .map(|m| (m.steps, m.factor))
+        .collect();
+    assert_eq!(recorded, made);
+    // Some renewals follow a step whose snapshot was taken before them.
+    assert!(
+        (log.maintenance.iter()).any(|m| log.estimates.iter().any(|(at, _)| *at == m.steps)),
+        "no snapshot at a maintained step"
+    );
+    let r = replay(&log, true).unwrap();
+    assert!(r.divergence.is_none(), "{:?}", r.divergence);
+    assert_eq!(r.estimator.counters().maintenance_renewals, made.len());
+    let first = log.maintenance[0].steps as usize;
+    let mut bare = read_log(&bytes).unwrap();
+    bare.maintenance.clear();
+    let d = replay(&bare, true).unwrap().divergence;
+    let d = d.expect("a log without its maintenance records diverges");
+    assert!(d.step + 1 >= first, "{d:?}");
+    let mut late = read_log(&bytes).unwrap();
+    late.maintenance[0].steps += 1;
+    let d = replay(&late, true).unwrap().divergence;
+    let d = d.expect("a maintenance record a step late diverges");
+    assert!(d.step + 1 >= first, "{d:?}");
 }

@@ -4,7 +4,7 @@ with `--official DIR`, every Foxglove message against the official schema in DIR
 as well (from the npm package @foxglove/schemas, written by tests/foxglove_schemas.js).
 
 Run by .ci/run inside a virtual environment (`pip install mcap jsonschema`):
-    python tests/mcap_client.py [--official DIR] logs/*.mcap
+    python tests/mcap_client.py [--official DIR] [--maintained] logs/*.mcap
 """
 import os
 import json
@@ -22,6 +22,7 @@ EXPECTED = {
     "/graph": "foxglove.SceneUpdate",
     "/poses": "foxglove.PosesInFrame",
     "/pose": "foxglove.PoseInFrame",
+    "/so2lin/maintenance": "so2lin.Maintenance",
 }
 
 
@@ -35,7 +36,7 @@ def stamp_ns(msg):
     return stamp["sec"] * 1_000_000_000 + stamp["nsec"]
 
 
-def check(path, official=None):
+def check(path, official=None, maintained=False):
     counts = Counter()
     validators = {}
     official_validators = {}
@@ -71,6 +72,8 @@ def check(path, official=None):
     assert counts["/graph"] == counts["/poses"] == counts["/so2lin/estimate"], f"{path}: {counts}"
     assert counts["/pose"] == counts["/so2lin/step"], f"{path}: the newest pose every step {counts}"
     steps = counts["/so2lin/step"]
+    if maintained:
+        assert counts["/so2lin/maintenance"] > 0, f"{path}: no renewal between steps {counts}"
     assert counts["/poses"] >= min(20, steps // 100 + 1), f"{path}: snapshots {counts}"
     span = (stats.message_end_time - stats.message_start_time) / 1e9
     assert span >= 0.05 * (steps - 1), f"{path}: {steps} steps play back in {span:.2f} s"
@@ -80,13 +83,18 @@ def check(path, official=None):
 
 
 if __name__ == "__main__":
+    usage = "usage: mcap_client.py [--official DIR] [--maintained] LOG.mcap ..."
     args = sys.argv[1:]
     official = None
     if args[:1] == ["--official"]:
         if len(args) < 2:
-            sys.exit("usage: mcap_client.py [--official DIR] LOG.mcap ...")
+            sys.exit(usage)
         official, args = args[1], args[2:]
+    # The logs were recorded with `stream --maintain`: they hold renewals between steps.
+    maintained = args[:1] == ["--maintained"]
+    if maintained:
+        args = args[1:]
     if not args:
-        sys.exit("usage: mcap_client.py [--official DIR] LOG.mcap ...")
+        sys.exit(usage)
     for p in args:
-        check(p, official)
+        check(p, official, maintained)

@@ -304,18 +304,7 @@ fn poses_are_exact_and_the_newest_pose_follows_them() {
             if !matches!(step.kind, StepKind::Cycle(_)) && i % 50 != 0 {
                 continue;
             }
-            let k = est.wraps().unwrap();
-            let batch = OrientationEstimator::new(est.graph()).unwrap();
-            let want = batch.poses(est.graph(), &batch.orientations(&k)).unwrap();
-            let got = est.poses().unwrap();
-            for (v, (a, b)) in got.iter().zip(&want).enumerate() {
-                assert!(
-                    (a.x - b.x).abs() < 1e-9
-                        && (a.y - b.y).abs() < 1e-9
-                        && (a.theta - b.theta).abs() < 1e-9,
-                    "{name}: step {i} node {v}: {a:?} vs {b:?}"
-                );
-            }
+            poses_are_the_batch_ones(&mut est, &format!("{name}: step {i}"));
             // poses() leaves the fast answers as they were (same bits whatever was read).
             let (_, again) = est.newest().unwrap().unwrap();
             assert_eq!(again, fast, "{name}: step {i}");
@@ -323,6 +312,27 @@ fn poses_are_exact_and_the_newest_pose_follows_them() {
             assert!(c[0][0] > 0.0 && c[2][2] > 0.0 && c[0][0] == c[1][1]);
         }
     }
+}
+
+/// Assert that `est.poses()` equals the batch solve of the same graph and wraps to 1e-9;
+/// returns the batch estimator and the poses.
+fn poses_are_the_batch_ones(
+    est: &mut OnlineEstimator,
+    at: &str,
+) -> (OrientationEstimator, Vec<Pose2>) {
+    let k = est.wraps().unwrap();
+    let batch = OrientationEstimator::new(est.graph()).unwrap();
+    let want = batch.poses(est.graph(), &batch.orientations(&k)).unwrap();
+    let got = est.poses().unwrap();
+    for (v, (a, b)) in got.iter().zip(&want).enumerate() {
+        assert!(
+            (a.x - b.x).abs() < 1e-9
+                && (a.y - b.y).abs() < 1e-9
+                && (a.theta - b.theta).abs() < 1e-9,
+            "{at} node {v}: {a:?} vs {b:?}"
+        );
+    }
+    (batch, got)
 }
 
 #[test]
@@ -353,6 +363,22 @@ fn answers_do_not_depend_on_what_was_read() {
     );
 }
 
+/// `edges` with every third edge's translation information doubled: the position weights are
+/// no longer proportional to the heading weights (a factor of two lanes).
+fn not_proportional(edges: &[Edge]) -> Vec<Edge> {
+    (edges.iter().enumerate())
+        .map(|(i, e)| {
+            let mut info = e.information();
+            if i % 3 == 0 {
+                for k in [0, 1, 2, 3] {
+                    info.0[k] *= 2.0;
+                }
+            }
+            Edge::new(e.from(), e.to(), e.measurement(), info).unwrap()
+        })
+        .collect()
+}
+
 /// The fast newest pose lags the heading corrections of later loop closures only until the
 /// next renewal re-linearises every position row at the headings of its start (module docs of
 /// `online::estimate`): across several renewals it stays within a small distance of the exact
@@ -361,18 +387,7 @@ fn answers_do_not_depend_on_what_was_read() {
 #[test]
 fn the_fast_pose_stays_near_the_exact_one_across_renewals() {
     let w = simulate(&SimConfig::new(3000, 3)).unwrap();
-    let split: Vec<Edge> = (w.graph.edges().iter().enumerate())
-        .map(|(i, e)| {
-            let mut info = e.information();
-            if i % 3 == 0 {
-                // Translation information doubled: not proportional to the heading's.
-                for k in [0, 1, 2, 3] {
-                    info.0[k] *= 2.0;
-                }
-            }
-            Edge::new(e.from(), e.to(), e.measurement(), info).unwrap()
-        })
-        .collect();
+    let split = not_proportional(w.graph.edges());
     for (name, edges) in [("shared", w.graph.edges().to_vec()), ("split", split)] {
         let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
         let mut worst: f64 = 0.0;
@@ -423,4 +438,86 @@ fn big_heading_corrections_re_linearise_the_positions() {
     let mean = sum / n as f64;
     eprintln!("MIT: fast pose {mean} m from the exact one on average; {c:?}");
     assert!(c.estimate_relinearisations > 0 && mean < 5.0, "{mean} m");
+}
+
+/// Idle time between steps (`OnlineEstimator::maintain` after every step) renews the
+/// estimate's factor on the caller's thread once enough nodes were appended since its order
+/// was made: the answers stay exact at every step (orientations, variances and poses against
+/// the batch solve of the same graph and wraps), right after a renewal the fast newest pose is
+/// the exact one (every position row re-linearised at the headings of the moment), the same
+/// calls give the same bits, and the steps between renewals walk a fresher factor (less work
+/// than without). In a shared factor and in one of two lanes (weights not proportional).
+#[test]
+fn maintenance_between_steps_renews_the_factor_and_stays_exact() {
+    let w = simulate(&SimConfig::new(1500, 9)).unwrap();
+    let lanes = not_proportional(w.graph.edges());
+    for (name, edges) in [("shared", w.graph.edges().to_vec()), ("lanes", lanes)] {
+        let edges = robot_order(&edges);
+        // The live factor's work per run, the answers at the end, and how many renewals.
+        let run = |maintain: bool, check: bool| {
+            let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+            let (mut work, mut renewed) = (0, 0);
+            for (i, e) in edges.iter().enumerate() {
+                let before = so2lin::work::on_this_thread();
+                est.add_edge(*e).unwrap();
+                let (id, fast) = est.newest().unwrap().unwrap();
+                work += so2lin::work::on_this_thread()
+                    .since(before)
+                    .estimate_entries;
+                if !maintain {
+                    continue;
+                }
+                let done = est.maintain();
+                renewed += usize::from(done.renewed);
+                if !check || !(done.renewed || i % 37 == 0) {
+                    continue;
+                }
+                let (batch, got) = poses_are_the_batch_ones(&mut est, &format!("{name}: step {i}"));
+                let v = est.graph().node_index(id).unwrap();
+                let var = est.variance(id).unwrap().unwrap();
+                let want_var = batch.variance(v);
+                assert!(
+                    (var - want_var).abs() <= 1e-9 * want_var.max(1.0),
+                    "{name}: step {i} variance {var} vs {want_var}"
+                );
+                let (_, now) = est.newest().unwrap().unwrap();
+                if done.renewed {
+                    // A renewal moves the heading's last bits at most.
+                    assert!((now.theta - fast.theta).abs() < 1e-9, "{name}: step {i}");
+                } else {
+                    assert_eq!(now, fast, "{name}: step {i}: nothing due, nothing changed");
+                }
+                if done.renewed {
+                    assert_eq!(done.variables, est.graph().node_count());
+                    assert!(done.nonzeros > 0);
+                    let exact = got[v];
+                    assert!(
+                        (now.x - exact.x).hypot(now.y - exact.y) < 1e-9,
+                        "{name}: step {i}: fast {now:?} vs exact {exact:?} after a renewal"
+                    );
+                }
+            }
+            let c = est.counters();
+            assert_eq!(c.maintenance_renewals, renewed, "{name}");
+            (
+                work,
+                est.orientations().unwrap().to_vec(),
+                est.poses().unwrap(),
+                renewed,
+            )
+        };
+        let (_, theta, poses, renewed) = run(true, true);
+        // The same calls without the checks' reads: the same bits (reads change no answer;
+        // they may only move where some work is counted).
+        let (work, again_theta, again_poses, _) = run(true, false);
+        let (plain_work, plain_theta, _, _) = run(false, false);
+        eprintln!("{name}: {renewed} renewals, work {work} against {plain_work} without");
+        assert!(renewed >= 10, "{name}: {renewed}");
+        assert!(theta == again_theta, "{name}: the same orientations");
+        assert!(poses == again_poses, "{name}: the same poses");
+        assert!(work < plain_work, "{name}: {work} vs {plain_work}");
+        for (a, b) in theta.iter().zip(&plain_theta) {
+            assert!((a - b).abs() < 1e-9, "{name}: {a} vs {b}");
+        }
+    }
 }

@@ -47,7 +47,8 @@ use serde_json::Value;
 use super::foxglove::{self, LogLine, PoseInFrame, PosesInFrame, SceneUpdate, Stamp, Style};
 use super::queue::Queue;
 use super::{
-    EDGE_SCHEMA, ESTIMATE_SCHEMA, LogError, LogOptions, SCHEMA_VERSION, STEP_SCHEMA, Sink,
+    EDGE_SCHEMA, ESTIMATE_SCHEMA, LogError, LogOptions, MAINTENANCE_SCHEMA, SCHEMA_VERSION,
+    STEP_SCHEMA, Sink,
 };
 use crate::graph::{Edge, NodeId, NodePolicy, Pose2, PoseGraph};
 use crate::online::{Decision, OnlineConfig, OnlineError, OnlineEstimator, Step, StepKind};
@@ -90,6 +91,9 @@ enum Record {
         handed: Instant,
     },
     Snapshot(Snapshot),
+    /// [`OnlineEstimator::maintain`] renewed the estimate's factor (its variables and
+    /// nonzeros) after the steps so far.
+    Maintained(usize, usize),
     /// A snapshot that could not be computed: said on `/so2lin/log`.
     Failed(String),
     Sync(SyncSender<()>),
@@ -212,7 +216,7 @@ impl Recorder {
             .profile("")
             .library(format!("so2lin {}", env!("CARGO_PKG_VERSION")));
         let mut mcap = opts.create(sink)?;
-        let mut channels = [0u16; 7];
+        let mut channels = [0u16; 8];
         let defs = [
             ("so2lin.Edge", EDGE_SCHEMA, "/so2lin/edge"),
             ("so2lin.Step", STEP_SCHEMA, "/so2lin/step"),
@@ -221,6 +225,11 @@ impl Recorder {
             ("foxglove.SceneUpdate", foxglove::SCENE_SCHEMA, "/graph"),
             ("foxglove.PosesInFrame", foxglove::POSES_SCHEMA, "/poses"),
             ("foxglove.PoseInFrame", foxglove::POSE_SCHEMA, "/pose"),
+            (
+                "so2lin.Maintenance",
+                MAINTENANCE_SCHEMA,
+                "/so2lin/maintenance",
+            ),
         ];
         for (k, (name, schema, topic)) in defs.into_iter().enumerate() {
             let id = mcap.add_schema(name, "jsonschema", schema.as_bytes())?;
@@ -377,6 +386,17 @@ impl Recorder {
         }
     }
 
+    /// [`OnlineEstimator::maintain`], recorded when it renewed the estimate's factor, so that a
+    /// replay renews it at the same point (the answers after it differ from a run without it
+    /// in their last bits).
+    pub fn maintain(&mut self, est: &mut OnlineEstimator) -> crate::online::Maintenance {
+        let done = est.maintain();
+        if done.renewed {
+            self.send(Record::Maintained(done.variables, done.nonzeros), false);
+        }
+        done
+    }
+
     /// Block until every step recorded so far is written and its chunk flushed to the sink.
     pub fn sync(&mut self) -> Result<(), LogError> {
         let (reply, done) = sync_channel(1);
@@ -449,6 +469,7 @@ const LOG: usize = 3;
 const GRAPH: usize = 4;
 const POSES: usize = 5;
 const POSE: usize = 6;
+const MAINTENANCE: usize = 7;
 
 /// The writer thread's state.
 struct Writer {
@@ -456,7 +477,7 @@ struct Writer {
     /// The recorded edges in input order (quarantined ones included; the same dense node
     /// indices as the estimator's graph, since a quarantined loop closure creates no node).
     graph: PoseGraph,
-    channels: [u16; 7],
+    channels: [u16; 8],
     options: LogOptions,
     steps: u64,
     /// Steps written since the last flush.
@@ -499,6 +520,14 @@ impl Writer {
                         }
                     }
                     Record::Snapshot(s) => self.snapshot(s)?,
+                    Record::Maintained(variables, nonzeros) => {
+                        let msg = MaintenanceMsg {
+                            step: self.steps,
+                            variables,
+                            nonzeros,
+                        };
+                        self.put(MAINTENANCE, &msg)?;
+                    }
                     Record::Failed(e) => self.log_line(4, &format!("snapshot not written: {e}"))?,
                     Record::Sync(reply) => {
                         self.flush(queue)?;
@@ -664,6 +693,15 @@ impl Writer {
         self.write(GRAPH, &graph)?;
         self.write(POSES, &poses)
     }
+}
+
+/// A `/so2lin/maintenance` message: the renewal [`OnlineEstimator::maintain`] made after
+/// `step` steps, and the factor it built.
+#[derive(serde::Serialize)]
+struct MaintenanceMsg {
+    step: u64,
+    variables: usize,
+    nonzeros: usize,
 }
 
 /// A `/so2lin/edge` message.

@@ -402,6 +402,37 @@ impl Estimate {
         with_factor!(&self.factors, both => (both.renewals, both.waits))
     }
 
+    /// Renewals made on the caller's thread ([`Self::maintain`]).
+    pub fn renewed_now(&self) -> usize {
+        with_factor!(&self.factors, both => both.renewed_now)
+    }
+
+    /// Whether [`Self::maintain`] would renew the factor (the pending operations applied): the
+    /// variables of the factor it would build.
+    pub fn maintenance_due(&mut self, graph: &PoseGraph, appended: usize) -> Option<usize> {
+        self.apply_pending(graph);
+        with_factor!(&self.factors, both => both.renewal_pays(appended).then(|| both.len()))
+    }
+
+    /// A caller's idle time: the pending operations applied, then, if at least `appended`
+    /// nodes were appended to the factor's order since it was made, the factor renewed now on
+    /// this thread with every position row at the current headings (as a renewal's builder
+    /// does: [`Laplacian::renew_now`]). The variables and nonzeros of the factor it built, or
+    /// None when it did not renew.
+    pub fn maintain(&mut self, graph: &PoseGraph, appended: usize) -> Option<(usize, usize)> {
+        self.maintenance_due(graph, appended)?;
+        let edges = self.factors.position_rows();
+        let built = with_factor!(&mut self.factors, both => {
+            both.renew_now(Some(Box::new(relinearise::<3>(graph, edges, 1))));
+            // The rows are at the headings of now, and nothing lags them.
+            both.set_moved(0, 0.0);
+            (both.len(), both.work_and_nnz().1)
+        });
+        self.moved_at_renewal = 0.0;
+        self.work_at_relinearisation = self.factors.positions_work().0;
+        Some(built)
+    }
+
     /// Whether the two systems share one factor (every edge so far has proportional weights).
     #[cfg(test)]
     pub fn shared(&self) -> bool {

@@ -138,6 +138,8 @@ pub(crate) struct Laplacian<const K: usize, const L: usize = 1> {
     pub renewals: usize,
     /// Steps that waited for a renewal's builder.
     pub waits: usize,
+    /// Renewals on the caller's thread ([`Self::renew_now`]).
+    pub renewed_now: usize,
 }
 
 impl<const K: usize, const L: usize> Default for Laplacian<K, L> {
@@ -167,6 +169,7 @@ impl<const K: usize, const L: usize> Default for Laplacian<K, L> {
             last_moved: ([0.0; K], [0.0; L]),
             renewals: 0,
             waits: 0,
+            renewed_now: 0,
         }
     }
 }
@@ -576,6 +579,7 @@ impl<const K: usize> Laplacian<K> {
             renewal_delay: self.renewal_delay,
             renewals: self.renewals,
             waits: self.waits,
+            renewed_now: self.renewed_now,
             ..Laplacian::default()
         }
     }

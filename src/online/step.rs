@@ -101,6 +101,17 @@ pub struct Step {
     pub readmitted: Vec<usize>,
 }
 
+/// What [`OnlineEstimator::maintain`](super::OnlineEstimator::maintain) did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct Maintenance {
+    /// The estimate's factor was renewed.
+    pub renewed: bool,
+    /// Its variables (nodes), when renewed.
+    pub variables: usize,
+    /// Its nonzeros off the diagonal, when renewed.
+    pub nonzeros: usize,
+}
+
 /// Counters of a run.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
 pub struct Counters {
@@ -134,6 +145,9 @@ pub struct Counters {
     /// estimate's work applied so far, which the next read (or loop closure, while the
     /// estimate is read every step) brings up to date.
     pub estimate_relinearisations: usize,
+    /// Times [`OnlineEstimator::maintain`](super::OnlineEstimator::maintain) renewed the
+    /// estimate's factor (on the caller's thread, between steps).
+    pub maintenance_renewals: usize,
     /// Times the estimator was rebuilt by a replay of the stream: evictions, and the one
     /// re-test from the start of a stream that quarantined a loop closure (module
     /// `online::checkpoint`).

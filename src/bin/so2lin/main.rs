@@ -373,6 +373,12 @@ enum Command {
         /// edges arrive, each growth a copy in one step.
         #[arg(long)]
         no_reserve: bool,
+        /// Give the estimator the time between steps: call `OnlineEstimator::maintain` after
+        /// every step (it renews the estimate's factor on this thread once enough nodes were
+        /// appended since its order was made). Its time is not in the steps' latency and is
+        /// reported apart; with --rate it runs in the wait for the next edge.
+        #[arg(long)]
+        maintain: bool,
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
@@ -515,6 +521,7 @@ fn main() -> ExitCode {
             rate,
             renewal_delay,
             no_reserve,
+            maintain,
             json,
         } => {
             // At least one edge every 10⁶ s (the log's longest step), at most 10⁹ a second.
@@ -559,6 +566,7 @@ fn main() -> ExitCode {
                     step_time_ns: (step_time * 1e9) as u64,
                     rate,
                     reserve: !no_reserve,
+                    maintain,
                     json,
                 })
             }

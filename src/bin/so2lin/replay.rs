@@ -21,6 +21,7 @@ pub fn run(path: &Path, verify: bool, as_json: bool) -> Result<(), String> {
             "truncated": r.truncated,
             "verified": verify && r.divergence.is_none(),
             "divergence": r.divergence.as_ref().map(|d| json!({"step": d.step, "channel": d.channel, "recorded": d.recorded, "replayed": d.replayed})),
+            "maintenance_renewals": r.estimator.counters().maintenance_renewals,
             "latency_us": lat,
             "source": log.metadata.get("source"),
         });
@@ -39,8 +40,17 @@ pub fn run(path: &Path, verify: bool, as_json: bool) -> Result<(), String> {
             );
         }
         if verify && r.divergence.is_none() {
+            let renewals = r.estimator.counters().maintenance_renewals;
+            let between = if renewals > 0 {
+                format!(
+                    ", and the {} between steps",
+                    crate::plural(renewals, "renewal", "renewals")
+                )
+            } else {
+                String::new()
+            };
             println!(
-                "verified: all {} steps identical to the recording (outcomes, newest poses, snapshots)",
+                "verified: all {} steps identical to the recording (outcomes, newest poses, snapshots{between})",
                 r.steps
             );
         }

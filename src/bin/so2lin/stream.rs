@@ -51,7 +51,20 @@ pub struct StreamArgs<'a> {
     /// Reserve the file's node and edge counts before the first step (`reserved` in the
     /// output says whether the room was had).
     pub reserve: bool,
+    /// Call `OnlineEstimator::maintain` after every step, untimed by the steps.
+    pub maintain: bool,
     pub json: bool,
+}
+
+/// What `--maintain` cost between the steps.
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct MaintenanceCost {
+    /// Calls that renewed the estimate's factor.
+    pub renewals: usize,
+    /// Time in all calls, seconds.
+    pub seconds: f64,
+    /// The longest call, ms.
+    pub worst_ms: f64,
 }
 
 /// p50, p90, p99, max, mean of latencies in µs.
@@ -174,6 +187,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     // records how far a step started after its edge's arrival (the steps before it overran).
     let paced = Instant::now();
     let mut max_lag = std::time::Duration::ZERO;
+    let mut maintenance = MaintenanceCost::default();
     for (k, &edge) in edges.iter().enumerate() {
         if let Some(hz) = args.rate {
             let arrival = std::time::Duration::from_secs_f64(k as f64 / hz);
@@ -206,6 +220,17 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         if let Some(rec) = recorder.as_mut() {
             let time = t0.saturating_add((k as u64).saturating_mul(args.step_time_ns));
             rec.record(&edge, &step, ns, time, &mut est);
+        }
+        if args.maintain {
+            let t = Instant::now();
+            let done = match recorder.as_mut() {
+                Some(rec) => rec.maintain(&mut est),
+                None => est.maintain(),
+            };
+            let spent = t.elapsed();
+            maintenance.renewals += usize::from(done.renewed);
+            maintenance.seconds += spent.as_secs_f64();
+            maintenance.worst_ms = maintenance.worst_ms.max(spent.as_secs_f64() * 1e3);
         }
         all.push(ns);
         match step.kind {
@@ -275,6 +300,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "estimate_renewals": c.estimate_renewals,
             "renewal_waits": c.renewal_waits,
             "estimate_relinearisations": c.estimate_relinearisations,
+            "maintenance": args.maintain.then_some(maintenance),
             "steps": c.steps,
             "nodes": est.graph().node_count(),
             "cycles": c.cycles,
@@ -371,6 +397,14 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         crate::plural(c.renewal_waits, "step", "steps"),
         c.estimate_relinearisations
     );
+    if args.maintain {
+        println!(
+            "maintenance between the steps (not in their latency): {} of the estimate's factor, {:.4} s in all, the longest call {:.2} ms",
+            crate::plural(maintenance.renewals, "renewal", "renewals"),
+            maintenance.seconds,
+            maintenance.worst_ms,
+        );
+    }
     if c.rebuilds > 0 {
         println!(
             "rebuilds: {} ({} from a checkpoint), {} arrivals replayed",

@@ -25,6 +25,11 @@
 //! the run stays deterministic whatever the threads' timing; the step waits only if the builder is
 //! still busy then — and swapped in. Every answer in between comes from the live factor: exact at
 //! every step.
+//!
+//! A caller with idle time between steps renews on its own thread instead
+//! ([`Laplacian::renew_now`], driven by [`crate::online::OnlineEstimator::maintain`]): the same
+//! build from the graph as it is then, swapped in at once, so the factor's order has no nodes
+//! appended after its snapshot.
 
 use super::{Laplacian, Rows, reset_rhs};
 use crate::estimate::incremental::{Dissection, SqrtInfo, dissected_order, fill_reducing_order};
@@ -226,6 +231,47 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     pub(super) fn drop_renewal(&mut self) {
         self.renewal = None;
         self.outbox.clear();
+    }
+
+    /// Whether [`Self::renew_now`] is worth a caller's idle time: the factor is large enough to
+    /// be renewed at all, and at least `appended` nodes were appended at the end of its order
+    /// since it was made (the chain every loop closure to an older node walks).
+    pub fn renewal_pays(&self, appended: usize) -> bool {
+        let n = self.len();
+        !self.deferred && n >= MIN_VARIABLES && n - self.nodes_at_renewal.min(n) >= appended
+    }
+
+    /// A renewal now, on the calling thread (a caller's idle time between steps): any renewal
+    /// in progress is dropped, the factor is built as a renewal's builder builds it (a
+    /// fill-reducing order with the newest node last, from the graph as it is now), the job
+    /// `relinearise` rewrites the rows' right-hand sides 1.. from its headings, and it is
+    /// swapped in. The old factor is freed here too, not on the worker (nothing runs beside
+    /// the next step).
+    pub fn renew_now(&mut self, relinearise: Option<Relinearise<K>>) {
+        self.flush_rhs();
+        self.post();
+        self.drop_renewal();
+        let n = self.len();
+        let order = if n >= self.dissect_from {
+            BuildOrder::Dissected(self.dissection.clone().filter(|t| !t.stale(n)))
+        } else {
+            BuildOrder::MinimumDegree
+        };
+        let (mut f, tree) = build(&self.rows, &self.prior, n, n.checked_sub(1), order);
+        if let Some(job) = relinearise {
+            let [x] = f.solve_columns([0]);
+            job(&mut self.rows.y, &x);
+            reset_rhs(&mut f, &self.rows, 1);
+        }
+        // (Refused, the factor grows as it would have.)
+        let _ = f.try_reserve(self.factor.capacity().saturating_sub(f.len()));
+        if let Some(tree) = tree {
+            self.dissection = Some(Arc::new(tree));
+        }
+        drop(std::mem::replace(&mut self.factor, SqrtInfo::new()));
+        self.install(f);
+        self.nodes_at_renewal = n;
+        self.renewed_now += 1;
     }
 
     /// Collect later renewals after `delay` times the default work ([`work_per_nonzero`]):
