@@ -248,8 +248,8 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     /// swapped in. The old factor is freed here too, not on the worker (nothing runs beside
     /// the next step).
     pub fn renew_now(&mut self, relinearise: Option<Relinearise<K>>) {
-        self.flush_rhs();
-        self.post();
+        // (Right-hand sides lagging a re-linearisation need no flush: the new factor's come
+        // from the rows. Changes queued for the builder go with it.)
         self.drop_renewal();
         let n = self.len();
         let order = if n >= self.dissect_from {
@@ -525,6 +525,58 @@ mod tests {
     /// then renewed — also when an old edge's wrap moves while it is built (the builder keeps
     /// its re-linearised position for that edge: the live factor's is older). And the
     /// re-linearisation matters: without it the positions differ.
+    /// A renewal now (a caller's idle time) drops the renewal in progress beside, builds the
+    /// factor with no node appended after its order, and answers as the live factor did; it
+    /// is due again only once enough nodes were appended since.
+    #[test]
+    fn a_renewal_now_replaces_the_one_beside() {
+        let mut l = Laplacian::<1>::default();
+        l.add_node();
+        while !l.renewing() {
+            let v = l.add_node();
+            l.add_edge(v - 1, v, 4.0, [0.1]);
+            if v % 5 == 0 && v > 20 {
+                l.add_edge(v - 20, v, 1.0, [2.05]);
+            }
+            l.after_step(|| None);
+        }
+        // Three nodes appended since the renewal beside started (its snapshot).
+        for _ in 0..3 {
+            let v = l.add_node();
+            l.add_edge(v - 1, v, 4.0, [0.1]);
+            l.after_step(|| None);
+        }
+        assert!(l.renewing());
+        let before = l.all(0);
+        assert!(l.renewal_pays(3) && !l.renewal_pays(4));
+        l.renew_now(None);
+        assert!(!l.renewing(), "the renewal beside is dropped");
+        assert_eq!((l.renewed_now, l.renewals), (1, 0));
+        assert!(!l.renewal_pays(1), "nothing appended since");
+        for (a, b) in l.all(0).iter().zip(&before) {
+            assert!((a - b).abs() < 1e-9, "{a} vs {b}");
+        }
+        // The chain appended since the renewal is empty: a loop closure from the newest node
+        // to the first walks the fresh order, less than the live factor's before it did.
+        let mut old = Laplacian::<1>::default();
+        old.add_node();
+        for v in 1..l.len() {
+            old.add_node();
+            old.add_edge(v - 1, v, 4.0, [0.1]);
+            if v % 5 == 0 && v > 20 {
+                old.add_edge(v - 20, v, 1.0, [2.05]);
+            }
+        }
+        let n = l.len() - 1;
+        let (_, a) = old.work_and_nnz();
+        let (_, b) = l.work_and_nnz();
+        assert!(b < a, "fresh order {b} nonzeros against {a} appended");
+        l.add_edge(0, n, 1.0, [0.5]);
+        let v = l.add_node();
+        l.add_edge(v - 1, v, 4.0, [0.1]);
+        assert!(!l.renewal_pays(2) && l.renewal_pays(1));
+    }
+
     #[test]
     fn a_renewal_relinearises_its_snapshot_on_the_builder() {
         // Each edge's tail and translation (the position columns are rewritten from them).
