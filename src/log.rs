@@ -12,7 +12,7 @@
 //! | `/graph` | `foxglove.SceneUpdate`: odometry and loop-closure edges as line lists, ambiguous loops highlighted (with each snapshot) |
 //! | `/poses` | `foxglove.PosesInFrame` in frame `map`: the current poses ([`OnlineEstimator::poses`]: orientations with least-squares positions), with each snapshot |
 //! | `/pose` | `foxglove.PoseInFrame` in frame `map`: the newest node's pose ([`OnlineEstimator::newest`]), every step |
-//! | `/so2lin/maintenance` | each renewal of the estimate's factor that [`OnlineEstimator::maintain`] made between two steps ([`Recorder::maintain`]): the number of steps before it, the factor's variables and nonzeros |
+//! | `/so2lin/maintenance` | what [`OnlineEstimator::maintain`] did between two steps ([`Recorder::maintain`]): a renewal of the estimate's factor or a re-linearisation of its position rows, the number of steps before it, the factor's variables and nonzeros |
 //!
 //! A metadata record `so2lin` holds the version, configuration, source and
 //! [`SCHEMA_VERSION`]. The log time of a step's messages (`log_time`, `publish_time` and every
@@ -30,9 +30,9 @@
 //! compares every new step with the recorded one: its outcome (all fields but the latency), the
 //! newest pose after it (`/pose`, read as the recorder read it) and every snapshot taken after it
 //! (the orientations of `/so2lin/estimate` and the poses of `/poses`); the times are recorded
-//! data, not compared. A renewal recorded on `/so2lin/maintenance` is made again after the same
-//! step (a renewal changes the answers' last bits), the snapshots taken before it compared
-//! before it, and its factor's size compared. JSON numbers are written in shortest round-trip form, so equality is bit
+//! data, not compared. What `/so2lin/maintenance` records is done again after the same step (a
+//! renewal changes the answers' last bits, a re-linearisation the fast positions), the
+//! snapshots taken before it compared before it, and what it did compared. JSON numbers are written in shortest round-trip form, so equality is bit
 //! equality of the floats.
 
 use std::collections::BTreeMap;
@@ -47,8 +47,8 @@ use crate::screening::ScreeningConfig;
 /// Version of the so2lin channels' message layout. 2: step messages carry the newest pose after
 /// the step in full precision (`newest`); a log of version 1 replays and verifies too, its
 /// newest poses compared as `/pose` displays them. 3: the channel `/so2lin/maintenance`
-/// (renewals made between steps, which a replay must make too); logs of versions 1 and 2 have
-/// none and replay as before.
+/// (what [`OnlineEstimator::maintain`] did between steps, which a replay must do too); logs of
+/// versions 1 and 2 have none and replay as before.
 pub const SCHEMA_VERSION: &str = "3";
 
 /// Recording options. Defaults ([`LogOptions::default`]): a snapshot every 100 steps; a flush
@@ -148,7 +148,7 @@ pub(crate) const EDGE_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/dra
 
 pub(crate) const STEP_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/draft/2020-12/schema","title":"so2lin.Step","type":"object","required":["step","latency_ns","edge","kind","rescreened"],"$defs":{"interval":{"type":"object","required":["lo","hi","inconsistent"],"properties":{"lo":{"type":"integer"},"hi":{"type":"integer"},"inconsistent":{"type":"boolean"}}},"decision":{"enum":["determined","ambiguous","inconsistent"]}},"properties":{"step":{"type":"integer","minimum":0},"latency_ns":{"type":"integer","minimum":0},"edge":{"type":"integer","minimum":0},"kind":{"oneOf":[{"type":"object","required":["kind","new_node","joined_components"],"properties":{"kind":{"const":"tree"},"new_node":{"type":"boolean"},"joined_components":{"type":"boolean"}}},{"type":"object","required":["kind","cycle","mean","sd","candidates","decision"],"properties":{"kind":{"const":"cycle"},"cycle":{"type":"integer","minimum":0},"mean":{"type":"number"},"sd":{"type":"number"},"candidates":{"$ref":"#/$defs/interval"},"decision":{"$ref":"#/$defs/decision"}}},{"type":"object","required":["kind"],"properties":{"kind":{"const":"quarantined"}}}]},"rescreened":{"type":"array","items":{"type":"object","required":["cycle","before","after","decision","changed"],"properties":{"cycle":{"type":"integer"},"before":{"$ref":"#/$defs/interval"},"after":{"$ref":"#/$defs/interval"},"decision":{"$ref":"#/$defs/decision"},"changed":{"type":"boolean"}}}},"quarantined":{"description":"the loop closure quarantined at this step (absent when none)","type":"array","items":{"type":"object","required":["edge","from","to","test","statistic","threshold"],"properties":{"edge":{"type":"integer","minimum":0},"from":{"type":"integer","minimum":0},"to":{"type":"integer","minimum":0},"test":{"enum":["cycle_angle","cycle_translation"]},"statistic":{"type":"number"},"threshold":{"type":"number"}}}},"readmitted":{"description":"input indices of quarantined loop closures re-admitted at this step (absent when none)","type":"array","items":{"type":"integer","minimum":0}},"newest":{"description":"the newest node and its pose after the step, in full precision (absent when there is none)","type":"object","required":["node","x","y","theta"],"properties":{"node":{"type":"integer","minimum":0},"x":{"type":"number"},"y":{"type":"number"},"theta":{"type":"number"}},"additionalProperties":false}}}"##;
 
-pub(crate) const MAINTENANCE_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/draft/2020-12/schema","title":"so2lin.Maintenance","description":"OnlineEstimator::maintain renewed the estimate's factor between two steps","type":"object","required":["step","variables","nonzeros"],"properties":{"step":{"description":"the number of steps before it","type":"integer","minimum":0},"variables":{"type":"integer","minimum":0},"nonzeros":{"type":"integer","minimum":0}},"additionalProperties":false}"##;
+pub(crate) const MAINTENANCE_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/draft/2020-12/schema","title":"so2lin.Maintenance","description":"OnlineEstimator::maintain renewed the estimate's factor, or re-linearised its position rows, between two steps","type":"object","required":["step","renewed","variables","nonzeros"],"properties":{"step":{"description":"the number of steps before it","type":"integer","minimum":0},"renewed":{"description":"a renewal (false: a re-linearisation alone)","type":"boolean"},"variables":{"type":"integer","minimum":0},"nonzeros":{"type":"integer","minimum":0}},"additionalProperties":false}"##;
 
 pub(crate) const ESTIMATE_SCHEMA: &str = r##"{"$schema":"https://json-schema.org/draft/2020-12/schema","title":"so2lin.Estimate","type":"object","required":["step","nodes","theta"],"properties":{"step":{"type":"integer","minimum":0},"nodes":{"type":"array","items":{"type":"integer","minimum":0}},"theta":{"description":"orientation of each node, radians, unwrapped, anchors 0","type":"array","items":{"type":"number"}}}}"##;
 
@@ -159,15 +159,18 @@ mod record;
 use record::step_json;
 pub use record::{Backpressure, Recorder};
 
-/// A renewal of the estimate's factor by [`OnlineEstimator::maintain`], as recorded.
+/// What [`OnlineEstimator::maintain`] did between two steps, as recorded: a renewal of the
+/// estimate's factor, or a re-linearisation of its position rows.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Maintained {
     /// The number of steps before it.
     pub steps: u64,
     /// The snapshots recorded before it ([`LogContents::estimates`] and
-    /// [`LogContents::poses`]: how many of each), which a replay compares before renewing.
+    /// [`LogContents::poses`]: how many of each), which a replay compares before it.
     pub snapshots_before: (usize, usize),
-    /// Variables and nonzeros of the factor it built.
+    /// A renewal (false: a re-linearisation alone).
+    pub renewed: bool,
+    /// Variables and nonzeros of the factor after it.
     pub factor: (usize, usize),
 }
 
@@ -375,9 +378,13 @@ pub fn read_log(bytes: &[u8]) -> Result<LogContents, LogError> {
                                 LogError::Format(format!("a maintenance without {k}"))
                             })
                         };
+                        let renewed = (v["renewed"].as_bool()).ok_or_else(|| {
+                            LogError::Format("a maintenance without renewed".into())
+                        })?;
                         maintenance.push(Maintained {
                             steps: step_of(&v)?,
                             snapshots_before: (estimates.len(), poses.len()),
+                            renewed,
                             factor: (count("variables")?, count("nonzeros")?),
                         });
                         Ok(())
@@ -823,9 +830,10 @@ fn after_step(
             (e, p) = (e_to, p_to);
         }
         let done = est.maintain();
-        let made = done.renewed.then_some((done.variables, done.nonzeros));
-        if verify && made != Some(m.factor) {
-            let (recorded, replayed) = (json!({ "factor": m.factor }), json!({ "factor": made }));
+        let made = (done.relinearised).then_some((done.renewed, (done.variables, done.nonzeros)));
+        if verify && made != Some((m.renewed, m.factor)) {
+            let recorded = json!({ "renewed": m.renewed, "factor": m.factor });
+            let replayed = json!({ "done": made });
             return Some(diverged(k, "/so2lin/maintenance", recorded, replayed));
         }
     }

@@ -176,7 +176,8 @@ pub use step::{Counters, CycleStep, Decision, Maintenance, NoiseScales, Rescreen
 /// Nodes appended to the estimate's factor since its order was made from which
 /// [`OnlineEstimator::maintain`] renews it (or the graph's nodes over [`MAINTAIN_FRACTION`],
 /// if more). Measured (`so2lin stream FILE --json --maintain`, robot order, the newest pose
-/// read after every step, back to back, 2026-12-05): every 24, 48 or 96 nodes, M3500's p99
+/// read after every step, back to back, 2026-12-05, before the maintenance re-linearised
+/// between renewals): every 24, 48 or 96 nodes, M3500's p99
 /// was 53–64, 62–66 and 90–103 µs for 0.21–0.24, 0.11 and 0.05–0.06 s of maintenance (three
 /// runs each); city10000's 81–86, 72–80 and 85–105 µs for 2.1–2.2, 1.1 and 0.5–0.6 s (two).
 pub const MAINTAIN_APPENDED: usize = 48;
@@ -503,10 +504,13 @@ impl OnlineEstimator {
     /// renewal a builder thread would otherwise make beside the steps, and collect later with
     /// the nodes appended meanwhile at the end of its order — with every position row taken
     /// at the current headings. The steps after it walk a fresh factor, and any renewal in
-    /// progress beside is dropped. It blocks for one sparse factorization in a fill-reducing
-    /// order when due (the longest call: 3–5 ms on M3500's 3 500 nodes, 13–20 ms on
-    /// city10000's 10 000, about 0.1 s on a 30 000-pose world on the development machine), and
-    /// costs nothing otherwise: a caller with a deadline asks [`Self::maintenance_due`] first.
+    /// progress beside is dropped. Otherwise, once the headings have moved half as far as the
+    /// bound at which a step would re-linearise the position rows, they are re-linearised now
+    /// (a back-substitution and a forward solve), so that no step has to. It blocks for one
+    /// sparse factorization in a fill-reducing order when a renewal is due (the longest call:
+    /// 3–5 ms on M3500's 3 500 nodes, 13–20 ms on city10000's 10 000, about 0.1 s on a
+    /// 30 000-pose world on the development machine), less for a re-linearisation, and costs
+    /// nothing otherwise: a caller with a deadline asks [`Self::maintenance_due`] first.
     /// The answers stay exact;
     /// like a renewal it changes their last bits, so a log records when it was called
     /// ([`crate::log::Recorder::maintain`]) and a replay calls it at the same points.
@@ -530,8 +534,9 @@ impl OnlineEstimator {
         let built = self.estimate.maintain(&self.graph, self.maintain_after());
         self.refresh_counters();
         match built {
-            Some((variables, nonzeros)) => Maintenance {
-                renewed: true,
+            Some((renewed, variables, nonzeros)) => Maintenance {
+                renewed,
+                relinearised: true,
                 variables,
                 nonzeros,
             },
@@ -539,10 +544,10 @@ impl OnlineEstimator {
         }
     }
 
-    /// Whether [`Self::maintain`] would renew the estimate's factor now, and if so the nodes of
-    /// the factor it would build: a renewal costs about as much as the last one per node (it
-    /// grows with the graph), so a caller with a deadline can tell whether it fits before the
-    /// next reading — `if let Some(n) = est.maintenance_due() { if n as f64 * per_node <
+    /// Whether [`Self::maintain`] would renew the estimate's factor (or re-linearise its
+    /// position rows) now, and if so the nodes of the factor: a renewal costs about as much as
+    /// the last one per node (it grows with the graph; a re-linearisation less), so a caller
+    /// with a deadline can tell whether it fits before the next reading — `if let Some(n) = est.maintenance_due() { if n as f64 * per_node <
     /// time_left { est.maintain(); } }` with `per_node` the last renewal's time over its
     /// [`Maintenance::variables`].
     pub fn maintenance_due(&mut self) -> Option<usize> {

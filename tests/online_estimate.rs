@@ -442,9 +442,11 @@ fn big_heading_corrections_re_linearise_the_positions() {
 
 /// Idle time between steps (`OnlineEstimator::maintain` after every step) renews the
 /// estimate's factor on the caller's thread once enough nodes were appended since its order
-/// was made: the answers stay exact at every step (orientations, variances and poses against
-/// the batch solve of the same graph and wraps), right after a renewal the fast newest pose is
-/// the exact one (every position row re-linearised at the headings of the moment), the same
+/// was made, and re-linearises the position rows in between once the headings moved half the
+/// steps' bound: the answers stay exact at every step (orientations, variances and poses
+/// against the batch solve of the same graph and wraps), right after either the fast newest
+/// pose is the exact one (every position row at the headings of the moment), the steps
+/// re-linearise nothing, the same
 /// calls give the same bits, and the steps between renewals walk a fresher factor (less work
 /// than without). In a shared factor and in one of two lanes (weights not proportional).
 #[test]
@@ -456,7 +458,7 @@ fn maintenance_between_steps_renews_the_factor_and_stays_exact() {
         // The live factor's work per run, the answers at the end, and how many renewals.
         let run = |maintain: bool, check: bool| {
             let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
-            let (mut work, mut renewed) = (0, 0);
+            let (mut work, mut renewed, mut relinearised) = (0, 0, 0);
             for (i, e) in edges.iter().enumerate() {
                 let before = so2lin::work::on_this_thread();
                 est.add_edge(*e).unwrap();
@@ -469,7 +471,8 @@ fn maintenance_between_steps_renews_the_factor_and_stays_exact() {
                 }
                 let done = est.maintain();
                 renewed += usize::from(done.renewed);
-                if !check || !(done.renewed || i % 37 == 0) {
+                relinearised += usize::from(done.relinearised && !done.renewed);
+                if !check || !(done.relinearised || i % 37 == 0) {
                     continue;
                 }
                 let (batch, got) = poses_are_the_batch_ones(&mut est, &format!("{name}: step {i}"));
@@ -481,38 +484,48 @@ fn maintenance_between_steps_renews_the_factor_and_stays_exact() {
                     "{name}: step {i} variance {var} vs {want_var}"
                 );
                 let (_, now) = est.newest().unwrap().unwrap();
-                if done.renewed {
-                    // A renewal moves the heading's last bits at most.
+                if done.relinearised {
+                    // A renewal moves the heading's last bits at most; a re-linearisation none.
                     assert!((now.theta - fast.theta).abs() < 1e-9, "{name}: step {i}");
-                } else {
-                    assert_eq!(now, fast, "{name}: step {i}: nothing due, nothing changed");
-                }
-                if done.renewed {
                     assert_eq!(done.variables, est.graph().node_count());
                     assert!(done.nonzeros > 0);
+                    // Every position row at the headings of now: the fast pose is the exact one.
                     let exact = got[v];
                     assert!(
                         (now.x - exact.x).hypot(now.y - exact.y) < 1e-9,
-                        "{name}: step {i}: fast {now:?} vs exact {exact:?} after a renewal"
+                        "{name}: step {i}: fast {now:?} vs exact {exact:?} after {done:?}"
                     );
+                } else {
+                    assert_eq!(now, fast, "{name}: step {i}: nothing due, nothing changed");
                 }
             }
             let c = est.counters();
             assert_eq!(c.maintenance_renewals, renewed, "{name}");
+            // The steps re-linearise nothing: the maintenance does it before them.
+            assert!(
+                !maintain || c.estimate_relinearisations == 0,
+                "{name}: {c:?}"
+            );
+            let done = (renewed, relinearised);
             (
                 work,
                 est.orientations().unwrap().to_vec(),
                 est.poses().unwrap(),
-                renewed,
+                done,
             )
         };
-        let (_, theta, poses, renewed) = run(true, true);
+        let (_, theta, poses, (renewed, relinearised)) = run(true, true);
         // The same calls without the checks' reads: the same bits (reads change no answer;
         // they may only move where some work is counted).
         let (work, again_theta, again_poses, _) = run(true, false);
         let (plain_work, plain_theta, _, _) = run(false, false);
-        eprintln!("{name}: {renewed} renewals, work {work} against {plain_work} without");
-        assert!(renewed >= 10, "{name}: {renewed}");
+        eprintln!(
+            "{name}: {renewed} renewals, {relinearised} re-linearisations, work {work} against {plain_work} without"
+        );
+        assert!(
+            renewed >= 10 && relinearised >= 1,
+            "{name}: {renewed}, {relinearised}"
+        );
         assert!(theta == again_theta, "{name}: the same orientations");
         assert!(poses == again_poses, "{name}: the same poses");
         assert!(work < plain_work, "{name}: {work} vs {plain_work}");

@@ -91,9 +91,10 @@ enum Record {
         handed: Instant,
     },
     Snapshot(Snapshot),
-    /// [`OnlineEstimator::maintain`] renewed the estimate's factor (its variables and
-    /// nonzeros) after the steps so far.
-    Maintained(usize, usize),
+    /// [`OnlineEstimator::maintain`] renewed the estimate's factor, or re-linearised its
+    /// position rows, after the steps so far: whether it renewed, the factor's variables and
+    /// nonzeros.
+    Maintained(bool, usize, usize),
     /// A snapshot that could not be computed: said on `/so2lin/log`.
     Failed(String),
     Sync(SyncSender<()>),
@@ -386,13 +387,14 @@ impl Recorder {
         }
     }
 
-    /// [`OnlineEstimator::maintain`], recorded when it renewed the estimate's factor, so that a
-    /// replay renews it at the same point (the answers after it differ from a run without it
-    /// in their last bits).
+    /// [`OnlineEstimator::maintain`], recorded when it did something (a renewal of the
+    /// estimate's factor, or a re-linearisation of its position rows), so that a replay does
+    /// it at the same point (the answers after it differ from a run without it).
     pub fn maintain(&mut self, est: &mut OnlineEstimator) -> crate::online::Maintenance {
         let done = est.maintain();
-        if done.renewed {
-            self.send(Record::Maintained(done.variables, done.nonzeros), false);
+        if done.relinearised {
+            let record = Record::Maintained(done.renewed, done.variables, done.nonzeros);
+            self.send(record, false);
         }
         done
     }
@@ -520,9 +522,10 @@ impl Writer {
                         }
                     }
                     Record::Snapshot(s) => self.snapshot(s)?,
-                    Record::Maintained(variables, nonzeros) => {
+                    Record::Maintained(renewed, variables, nonzeros) => {
                         let msg = MaintenanceMsg {
                             step: self.steps,
+                            renewed,
                             variables,
                             nonzeros,
                         };
@@ -695,11 +698,12 @@ impl Writer {
     }
 }
 
-/// A `/so2lin/maintenance` message: the renewal [`OnlineEstimator::maintain`] made after
-/// `step` steps, and the factor it built.
+/// A `/so2lin/maintenance` message: what [`OnlineEstimator::maintain`] did after `step` steps
+/// (a renewal, or a re-linearisation of the position rows) and the size of the factor.
 #[derive(serde::Serialize)]
 struct MaintenanceMsg {
     step: u64,
+    renewed: bool,
     variables: usize,
     nonzeros: usize,
 }

@@ -168,6 +168,20 @@ const RELINEARISE_ALLOWANCE: u64 = 1 << 20;
 /// spaced by the live work ([`RELINEARISE_WORK_PER_NONZERO`]).
 pub(crate) const HEADING_LAG: f64 = 1.0;
 
+/// The share of [`HEADING_LAG`] beyond which [`Estimate::maintain`] (a caller's idle time)
+/// re-linearises every position row, before a step has to: with the caller maintaining after
+/// every step, the steps then re-linearise nothing. Measured (`so2lin stream FILE --json
+/// --maintain`, robot order, the newest pose read after every step, back to back, alternating,
+/// 2026-12-05): M3500 p99 47.4 µs (44.4–54.8) at 1/2 and 49.5 (45.1–55.6) at 1/4 against 65.7
+/// (58.1–75.5) leaving them to the steps (eight runs each; 74 and 172 re-linearisations
+/// between steps, 21 on the steps otherwise); city10000 71.4–74.4 and 71.6–73.0 against
+/// 76.7–80.4 µs (three runs each). The same share of the work that spaces the steps'
+/// re-linearisations ([`RELINEARISE_WORK_PER_NONZERO`]) spaces these: unspaced, a 30 000-pose
+/// world spent 9.1 s of maintenance against 4.4 s without re-linearising between steps (p99
+/// 335 against 329 µs); spaced, 5.5 s, p99 288 µs, 4 re-linearisations left to the steps (one
+/// run each); the 100 000-pose world's maintenance took 96 s unspaced against 18 s without.
+const MAINTAIN_LAG: f64 = 0.5;
+
 impl Estimate {
     /// An empty estimate whose factor's renewals are collected after `renewal_delay` times
     /// the default work ([`crate::online::OnlineConfig::renewal_delay`]).
@@ -407,21 +421,62 @@ impl Estimate {
         with_factor!(&self.factors, both => both.renewed_now)
     }
 
-    /// Whether [`Self::maintain`] would renew the factor (the pending operations applied): the
-    /// variables of the factor it would build.
+    /// Whether [`Self::maintain`] would renew the factor or re-linearise its position rows
+    /// (the pending operations applied): the variables of the factor.
     pub fn maintenance_due(&mut self, graph: &PoseGraph, appended: usize) -> Option<usize> {
+        let due = self.renewal_due(graph, appended) || self.relinearisation_due();
+        due.then(|| with_factor!(&self.factors, both => both.len()))
+    }
+
+    /// Whether a renewal pays (the pending operations applied): `appended` nodes or more at the
+    /// end of the factor's order.
+    fn renewal_due(&mut self, graph: &PoseGraph, appended: usize) -> bool {
         self.apply_pending(graph);
-        with_factor!(&self.factors, both => both.renewal_pays(appended).then(|| both.len()))
+        with_factor!(&self.factors, both => both.renewal_pays(appended))
+    }
+
+    /// Whether the headings moved by more than [`MAINTAIN_LAG`] of [`HEADING_LAG`] since the
+    /// position rows were linearised, and the live factor has done that share of the work that
+    /// pays for a re-linearisation since the last ([`Self::relinearisation_paid`]): both before
+    /// a step's own re-linearisation would be due, so a caller who maintains after every step
+    /// leaves the steps none.
+    fn relinearisation_due(&self) -> bool {
+        !self.factors.deferred()
+            && self.factors.headings_moved() > MAINTAIN_LAG * HEADING_LAG
+            && self.relinearisation_paid(MAINTAIN_LAG)
+    }
+
+    /// Whether the live factor has done `share` of [`RELINEARISE_WORK_PER_NONZERO`] units of
+    /// work per nonzero since the last re-linearisation, less [`RELINEARISE_ALLOWANCE`]: what
+    /// spaces re-linearisations on large worlds, on the steps (`share` 1) and between them.
+    fn relinearisation_paid(&self, share: f64) -> bool {
+        let (work, nnz) = self.factors.positions_work();
+        work.saturating_sub(self.work_at_relinearisation) + RELINEARISE_ALLOWANCE
+            >= (share * RELINEARISE_WORK_PER_NONZERO * nnz as f64) as u64
     }
 
     /// A caller's idle time: the pending operations applied, then, if at least `appended`
     /// nodes were appended to the factor's order since it was made, the factor renewed now on
     /// this thread with every position row at the current headings (as a renewal's builder
-    /// does: [`Laplacian::renew_now`]). The variables and nonzeros of the factor it built, or
-    /// None when it did not renew.
-    pub fn maintain(&mut self, graph: &PoseGraph, appended: usize) -> Option<(usize, usize)> {
-        self.maintenance_due(graph, appended)?;
+    /// does: [`Laplacian::renew_now`]); otherwise, if the headings moved by more than
+    /// [`MAINTAIN_LAG`] of [`HEADING_LAG`], every position row re-linearised (rows and
+    /// right-hand sides at once). Whether it renewed, and the factor's variables and nonzeros;
+    /// None when it did neither.
+    pub fn maintain(&mut self, graph: &PoseGraph, appended: usize) -> Option<(bool, usize, usize)> {
+        let renew = self.renewal_due(graph, appended);
+        if !renew && !self.relinearisation_due() {
+            return None;
+        }
         let edges = self.factors.position_rows();
+        if !renew {
+            // The rows and, at once, the factor's right-hand sides: nothing left for a step.
+            self.factors.relinearise_positions(graph, edges);
+            with_factor!(&mut self.factors, both => both.flush_rhs());
+            self.work_at_relinearisation = self.factors.positions_work().0;
+            self.moved_at_renewal = 0.0;
+            let size = with_factor!(&self.factors, both => (both.len(), both.work_and_nnz().1));
+            return Some((false, size.0, size.1));
+        }
         let built = with_factor!(&mut self.factors, both => {
             both.renew_now(Some(Box::new(relinearise::<3>(graph, edges, 1))));
             // The rows are at the headings of now, and nothing lags them.
@@ -430,7 +485,7 @@ impl Estimate {
         });
         self.moved_at_renewal = 0.0;
         self.work_at_relinearisation = self.factors.positions_work().0;
-        Some(built)
+        Some((true, built.0, built.1))
     }
 
     /// Whether the two systems share one factor (every edge so far has proportional weights).
@@ -557,13 +612,10 @@ impl Estimate {
         if deferred || self.factors.headings_moved() <= HEADING_LAG {
             return;
         }
-        let (work, nnz) = self.factors.positions_work();
-        let paid = work.saturating_sub(self.work_at_relinearisation) + RELINEARISE_ALLOWANCE
-            >= (RELINEARISE_WORK_PER_NONZERO * nnz as f64) as u64;
-        if paid {
+        if self.relinearisation_paid(1.0) {
             self.factors.relinearise_positions(graph, edges);
             self.relinearisations += 1;
-            self.work_at_relinearisation = work;
+            self.work_at_relinearisation = self.factors.positions_work().0;
             // A renewal in progress takes these rows too: its bound counts from here.
             self.moved_at_renewal = 0.0;
         }

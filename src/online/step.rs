@@ -106,6 +106,8 @@ pub struct Step {
 pub struct Maintenance {
     /// The estimate's factor was renewed.
     pub renewed: bool,
+    /// Every position row was re-linearised at the current headings (with a renewal, or alone).
+    pub relinearised: bool,
     /// Its variables (nodes), when renewed.
     pub variables: usize,
     /// Its nonzeros off the diagonal, when renewed.

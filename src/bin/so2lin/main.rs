@@ -375,8 +375,9 @@ enum Command {
         no_reserve: bool,
         /// Give the estimator the time between steps: call `OnlineEstimator::maintain` after
         /// every step (it renews the estimate's factor on this thread once enough nodes were
-        /// appended since its order was made). Its time is not in the steps' latency and is
-        /// reported apart; with --rate it runs in the wait for the next edge.
+        /// appended since its order was made, and re-linearises its position rows before a
+        /// step has to). Its time is not in the steps' latency and is reported apart; with
+        /// --rate it runs in the wait for the next edge.
         #[arg(long)]
         maintain: bool,
         /// Print JSON instead of text.

@@ -61,6 +61,8 @@ pub struct StreamArgs<'a> {
 pub struct MaintenanceCost {
     /// Calls that renewed the estimate's factor.
     pub renewals: usize,
+    /// Calls that re-linearised every position row without a renewal.
+    pub relinearisations: usize,
     /// Time in all calls, seconds.
     pub seconds: f64,
     /// The longest call, ms.
@@ -229,6 +231,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             };
             let spent = t.elapsed();
             maintenance.renewals += usize::from(done.renewed);
+            maintenance.relinearisations += usize::from(done.relinearised && !done.renewed);
             maintenance.seconds += spent.as_secs_f64();
             maintenance.worst_ms = maintenance.worst_ms.max(spent.as_secs_f64() * 1e3);
         }
@@ -399,8 +402,13 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     );
     if args.maintain {
         println!(
-            "maintenance between the steps (not in their latency): {} of the estimate's factor, {:.4} s in all, the longest call {:.2} ms",
+            "maintenance between the steps (not in their latency): {} of the estimate's factor and {} of its positions alone, {:.4} s in all, the longest call {:.2} ms",
             crate::plural(maintenance.renewals, "renewal", "renewals"),
+            crate::plural(
+                maintenance.relinearisations,
+                "re-linearisation",
+                "re-linearisations"
+            ),
             maintenance.seconds,
             maintenance.worst_ms,
         );
