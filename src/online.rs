@@ -150,7 +150,8 @@
 //! order was made. A renewal beside the steps is collected only after the live factor has done
 //! a build's worth of work, with the nodes appended meanwhile at the end of its order, which
 //! every loop closure to an older node walks; renewed between steps the factor is fresh when
-//! the next step arrives. The steps then do a half to a quarter of the work.
+//! the next step arrives. The steps then do a half to a quarter of the work. In between it
+//! re-linearises the position rows before a step would have to.
 
 use smallvec::SmallVec;
 
@@ -511,9 +512,9 @@ impl OnlineEstimator {
     /// 3–5 ms on M3500's 3 500 nodes, 13–20 ms on city10000's 10 000, about 0.1 s on a
     /// 30 000-pose world on the development machine), less for a re-linearisation, and costs
     /// nothing otherwise: a caller with a deadline asks [`Self::maintenance_due`] first.
-    /// The answers stay exact;
-    /// like a renewal it changes their last bits, so a log records when it was called
-    /// ([`crate::log::Recorder::maintain`]) and a replay calls it at the same points.
+    /// The answers stay exact; a renewal changes their last bits and a re-linearisation the
+    /// fast positions, so a log records what it did ([`crate::log::Recorder::maintain`]) and a
+    /// replay does it at the same points.
     ///
     /// ```
     /// use so2lin::online::{OnlineConfig, OnlineEstimator, robot_order};
@@ -547,9 +548,10 @@ impl OnlineEstimator {
     /// Whether [`Self::maintain`] would renew the estimate's factor (or re-linearise its
     /// position rows) now, and if so the nodes of the factor: a renewal costs about as much as
     /// the last one per node (it grows with the graph; a re-linearisation less), so a caller
-    /// with a deadline can tell whether it fits before the next reading — `if let Some(n) = est.maintenance_due() { if n as f64 * per_node <
-    /// time_left { est.maintain(); } }` with `per_node` the last renewal's time over its
-    /// [`Maintenance::variables`].
+    /// with a deadline can tell whether it fits before the next reading:
+    /// `if est.maintenance_due().is_some_and(|n| n as f64 * per_node < time_left)
+    /// { est.maintain(); }`, with `per_node` the last call's time over its
+    /// [`Maintenance::variables`] (the `robot_loop` example).
     pub fn maintenance_due(&mut self) -> Option<usize> {
         self.estimate
             .maintenance_due(&self.graph, self.maintain_after())
