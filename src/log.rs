@@ -192,8 +192,8 @@ pub struct LogContents {
     /// Each snapshot's poses as `/poses` shows them (as [`Self::newest`]), with the number of
     /// steps before it, in step order.
     pub poses: Vec<(u64, Vec<[f32; 4]>)>,
-    /// The renewals [`OnlineEstimator::maintain`] made between steps (`/so2lin/maintenance`),
-    /// in the order recorded.
+    /// What [`OnlineEstimator::maintain`] did between steps (`/so2lin/maintenance`), in the
+    /// order recorded.
     pub maintenance: Vec<Maintained>,
     /// Whether the file ended early (no end magic / damaged last chunk).
     pub truncated: Option<String>,
@@ -788,8 +788,8 @@ fn verify_snapshots(
     None
 }
 
-/// After step `k` has been replayed (and verified): the recorded renewals by
-/// [`OnlineEstimator::maintain`] that followed it, each made again, and with `verify` the
+/// After step `k` has been replayed (and verified): what [`OnlineEstimator::maintain`] was
+/// recorded doing after it, each done again, and with `verify` the
 /// snapshots taken after the step compared in between, each with the estimator as it was when
 /// it was taken. `next` is the first maintenance not yet replayed (advanced past these).
 fn after_step(

@@ -179,8 +179,10 @@ pub use step::{Counters, CycleStep, Decision, Maintenance, NoiseScales, Rescreen
 /// if more). Measured (`so2lin stream FILE --json --maintain`, robot order, the newest pose
 /// read after every step, back to back, 2026-12-05, before the maintenance re-linearised
 /// between renewals): every 24, 48 or 96 nodes, M3500's p99
-/// was 53–64, 62–66 and 90–103 µs for 0.21–0.24, 0.11 and 0.05–0.06 s of maintenance (three
-/// runs each); city10000's 81–86, 72–80 and 85–105 µs for 2.1–2.2, 1.1 and 0.5–0.6 s (two).
+/// was 53–64, 62–66 and 90–103 µs (worst step 0.32–0.47, 0.35–0.48 and 0.67–1.19 ms) for
+/// 0.21–0.24, 0.11 and 0.05–0.06 s of maintenance (three runs each); city10000's 81–86, 72–80
+/// and 85–105 µs (worst 0.69–0.83, 0.70–0.77 and 1.78–2.23 ms) for 2.1–2.2, 1.1 and 0.5–0.6 s
+/// (two).
 pub const MAINTAIN_APPENDED: usize = 48;
 
 /// On large graphs [`OnlineEstimator::maintain`] renews once the nodes appended since the
@@ -188,8 +190,9 @@ pub const MAINTAIN_APPENDED: usize = 48;
 /// microsecond per node or more, and the steps gain no more from renewing sooner. Measured on
 /// a 30 000-pose simulated world (`so2lin simulate --poses 30000`, as [`MAINTAIN_APPENDED`]):
 /// every 48 nodes p99 338 µs and 13.7 s of maintenance, from n/256 329 µs and 8.2 s, from
-/// n/128 329 µs and 4.4 s (one run each; without maintenance 1.37 ms); city10000 from n/128
-/// 71–72 µs against 71–73 every 48 nodes (two runs each).
+/// n/128 329 µs and 4.4 s, the worst step 6.9–7.0 ms in all three (one run each; without
+/// maintenance 1.37 ms and 11.7 ms); city10000 from n/128 71–72 µs against 71–73 every 48
+/// nodes, worst 0.69–0.79 against 0.66 ms (two runs each).
 pub const MAINTAIN_FRACTION: usize = 128;
 
 use estimate::{Estimate, Op};

@@ -173,13 +173,16 @@ pub(crate) const HEADING_LAG: f64 = 1.0;
 /// every step, the steps then re-linearise nothing. Measured (`so2lin stream FILE --json
 /// --maintain`, robot order, the newest pose read after every step, back to back, alternating,
 /// 2026-12-05): M3500 p99 47.4 µs (44.4–54.8) at 1/2 and 49.5 (45.1–55.6) at 1/4 against 65.7
-/// (58.1–75.5) leaving them to the steps (eight runs each; 74 and 172 re-linearisations
-/// between steps, 21 on the steps otherwise); city10000 71.4–74.4 and 71.6–73.0 against
-/// 76.7–80.4 µs (three runs each). The same share of the work that spaces the steps'
+/// (58.1–75.5) leaving them to the steps, the worst step 0.36, 0.35 and 0.36 ms (medians;
+/// eight runs each; 74 and 172 re-linearisations between steps, 21 on the steps otherwise);
+/// city10000 71.4–74.4 and 71.6–73.0 against 76.7–80.4 µs, worst 0.70–0.84, 0.67–0.70 and
+/// 0.76–1.01 ms (three runs each). The same share of the work that spaces the steps'
 /// re-linearisations ([`RELINEARISE_WORK_PER_NONZERO`]) spaces these: unspaced, a 30 000-pose
 /// world spent 9.1 s of maintenance against 4.4 s without re-linearising between steps (p99
-/// 335 against 329 µs); spaced, 5.5 s, p99 288 µs, 4 re-linearisations left to the steps (one
-/// run each); the 100 000-pose world's maintenance took 96 s unspaced against 18 s without.
+/// 335 against 329 µs, worst 6.8 against 7.0 ms); spaced, 5.4–5.6 s, p99 288–303 µs (worst
+/// 7.6 ms in the run that kept it), 4 re-linearisations left to the steps (two runs); the
+/// 100 000-pose world's maintenance took 96 s unspaced against 18 s without (worst step 25.3
+/// against 36.5 ms, one run each).
 const MAINTAIN_LAG: f64 = 0.5;
 
 impl Estimate {
@@ -468,24 +471,22 @@ impl Estimate {
             return None;
         }
         let edges = self.factors.position_rows();
-        if !renew {
+        if renew {
+            with_factor!(&mut self.factors, both => {
+                both.renew_now(Some(Box::new(relinearise::<3>(graph, edges, 1))));
+                // The rows are at the headings of now, and nothing lags them.
+                both.set_moved(0, 0.0);
+            });
+        } else {
             // The rows and, at once, the factor's right-hand sides: nothing left for a step.
             self.factors.relinearise_positions(graph, edges);
             with_factor!(&mut self.factors, both => both.flush_rhs());
-            self.work_at_relinearisation = self.factors.positions_work().0;
-            self.moved_at_renewal = 0.0;
-            let size = with_factor!(&self.factors, both => (both.len(), both.work_and_nnz().1));
-            return Some((false, size.0, size.1));
         }
-        let built = with_factor!(&mut self.factors, both => {
-            both.renew_now(Some(Box::new(relinearise::<3>(graph, edges, 1))));
-            // The rows are at the headings of now, and nothing lags them.
-            both.set_moved(0, 0.0);
-            (both.len(), both.work_and_nnz().1)
-        });
-        self.moved_at_renewal = 0.0;
         self.work_at_relinearisation = self.factors.positions_work().0;
-        Some((true, built.0, built.1))
+        self.moved_at_renewal = 0.0;
+        let (variables, nonzeros) =
+            with_factor!(&self.factors, both => (both.len(), both.work_and_nnz().1));
+        Some((renew, variables, nonzeros))
     }
 
     /// Whether the two systems share one factor (every edge so far has proportional weights).

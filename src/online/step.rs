@@ -108,9 +108,9 @@ pub struct Maintenance {
     pub renewed: bool,
     /// Every position row was re-linearised at the current headings (with a renewal, or alone).
     pub relinearised: bool,
-    /// Its variables (nodes), when renewed.
+    /// The factor's variables (nodes) after it, when it did either (0 otherwise).
     pub variables: usize,
-    /// Its nonzeros off the diagonal, when renewed.
+    /// The factor's nonzeros off the diagonal after it, when it did either (0 otherwise).
     pub nonzeros: usize,
 }
 

@@ -241,6 +241,17 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         !self.deferred && n >= MIN_VARIABLES && n - self.nodes_at_renewal.min(n) >= appended
     }
 
+    /// The order a renewal of `n` variables builds in: nested dissection from
+    /// [`LARGE_FACTOR`] variables (in the last renewal's tree while it is not stale), minimum
+    /// degree below.
+    fn renewal_order(&self, n: usize) -> BuildOrder {
+        if n >= self.dissect_from {
+            BuildOrder::Dissected(self.dissection.clone().filter(|t| !t.stale(n)))
+        } else {
+            BuildOrder::MinimumDegree
+        }
+    }
+
     /// A renewal now, on the calling thread (a caller's idle time between steps): any renewal
     /// in progress is dropped, the factor is built as a renewal's builder builds it (a
     /// fill-reducing order with the newest node last, from the graph as it is now), the job
@@ -252,19 +263,9 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         // from the rows. Changes queued for the builder go with it.)
         self.drop_renewal();
         let n = self.len();
-        let order = if n >= self.dissect_from {
-            BuildOrder::Dissected(self.dissection.clone().filter(|t| !t.stale(n)))
-        } else {
-            BuildOrder::MinimumDegree
-        };
-        let (mut f, tree) = build(&self.rows, &self.prior, n, n.checked_sub(1), order);
-        if let Some(job) = relinearise {
-            let [x] = f.solve_columns([0]);
-            job(&mut self.rows.y, &x);
-            reset_rhs(&mut f, &self.rows, 1);
-        }
-        // (Refused, the factor grows as it would have.)
-        let _ = f.try_reserve(self.factor.capacity().saturating_sub(f.len()));
+        let order = self.renewal_order(n);
+        let room = self.factor.capacity();
+        let (f, tree) = renewed(&mut self.rows, &self.prior, n, order, relinearise, room);
         if let Some(tree) = tree {
             self.dissection = Some(Arc::new(tree));
         }
@@ -315,7 +316,6 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         let mut rows = self.rows.clone();
         let relinearise = relinearise();
         let prior = self.prior.clone();
-        let newest = n - 1;
         // The builder's work grows with the size of the factor it builds (about the last
         // renewal's fill per row), not with the live factor's fill, which is what grows
         // without bound between renewals.
@@ -324,11 +324,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         // builder, so that the first node or edge after the swap does not copy them in a step).
         let room = self.factor.capacity();
         let y_room = self.rows.y.capacity();
-        let order = if n >= self.dissect_from {
-            BuildOrder::Dissected(self.dissection.clone().filter(|t| !t.stale(n)))
-        } else {
-            BuildOrder::MinimumDegree
-        };
+        let order = self.renewal_order(n);
         // A fresh split computes its separators too.
         let split = if matches!(order, BuildOrder::Dissected(None)) {
             SPLIT_BUILD
@@ -336,16 +332,8 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
             1.0
         };
         let build = move || {
-            let (mut f, tree) = build(&rows, &prior, n, Some(newest), order);
-            if let Some(job) = relinearise {
-                // The snapshot's solution of right-hand side 0 from the new factor, the rows
-                // from it, and the factor's right-hand sides 1.. from those (a forward solve).
-                let [x] = f.solve_columns([0]);
-                job(&mut rows.y, &x);
-                reset_rhs(&mut f, &rows, 1);
-            }
-            // (Refused, the renewed factor grows as it would have.)
-            let _ = f.try_reserve(room.saturating_sub(f.len()));
+            let (f, tree) = renewed(&mut rows, &prior, n, order, relinearise, room);
+            // (Refused, the renewed rows grow as they would have.)
             let _ = rows.y.try_reserve(y_room.saturating_sub(rows.y.len()));
             Some((f, rows, tree))
         };
@@ -429,6 +417,30 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         self.renewals += 1;
         true
     }
+}
+
+/// A renewal's factor of `rows` (the newest of the `n` nodes last, in `order`), as a builder
+/// and [`Laplacian::renew_now`] make it: if `relinearise` is given, the headings solved from
+/// the new factor, the rows' right-hand sides 1.. rewritten from them and the factor's
+/// recomputed (a forward solve); the factor given `room` (the live one's capacity, so that
+/// the first change after the swap does not copy it). With the dissection the order came from.
+fn renewed<const K: usize, const L: usize>(
+    rows: &mut Rows<K, L>,
+    prior: &[[f64; L]],
+    n: usize,
+    order: BuildOrder,
+    relinearise: Option<Relinearise<K>>,
+    room: usize,
+) -> (SqrtInfo<K, L>, Option<Dissection>) {
+    let (mut f, tree) = build(rows, prior, n, n.checked_sub(1), order);
+    if let Some(job) = relinearise {
+        let [x] = f.solve_columns([0]);
+        job(&mut rows.y, &x);
+        reset_rhs(&mut f, rows, 1);
+    }
+    // (Refused, the renewed factor grows as it would have.)
+    let _ = f.try_reserve(room.saturating_sub(f.len()));
+    (f, tree)
 }
 
 /// A factor of the whole system in a fill-reducing order (`last` at the end), and the
@@ -519,12 +531,6 @@ mod tests {
         assert!((x[last] - 0.1 * last as f64).abs() < 1e-9, "{}", x[last]);
     }
 
-    /// A renewal re-linearises its snapshot on the builder, from the headings the builder
-    /// solves from its new factor: once swapped in, the factor answers as one whose rows were
-    /// re-linearised on the step at the snapshot's headings (read from the live factor) and
-    /// then renewed — also when an old edge's wrap moves while it is built (the builder keeps
-    /// its re-linearised position for that edge: the live factor's is older). And the
-    /// re-linearisation matters: without it the positions differ.
     /// A renewal now (a caller's idle time) drops the renewal in progress beside, builds the
     /// factor with no node appended after its order, and answers as the live factor did; it
     /// is due again only once enough nodes were appended since.
@@ -577,6 +583,12 @@ mod tests {
         assert!(!l.renewal_pays(2) && l.renewal_pays(1));
     }
 
+    /// A renewal re-linearises its snapshot on the builder, from the headings the builder
+    /// solves from its new factor: once swapped in, the factor answers as one whose rows were
+    /// re-linearised on the step at the snapshot's headings (read from the live factor) and
+    /// then renewed — also when an old edge's wrap moves while it is built (the builder keeps
+    /// its re-linearised position for that edge: the live factor's is older). And the
+    /// re-linearisation matters: without it the positions differ.
     #[test]
     fn a_renewal_relinearises_its_snapshot_on_the_builder() {
         // Each edge's tail and translation (the position columns are rewritten from them).
