@@ -65,13 +65,16 @@ pub fn run(args: BasesArgs) -> Result<(), String> {
             "--max-seconds {s}: must be a positive number of seconds"
         ));
     }
-    let (graph, _) = crate::load(args.file, args.order)?;
+    let (graph, _) = crate::files::load(args.file, args.order)?;
     let sigma2: Vec<f64> = graph.edges().iter().map(|e| e.sigma2()).collect();
     let m = graph.edge_count();
     let rows: Vec<Row> = KINDS
         .iter()
         .map(|&kind| {
-            let bar = crate::phase(format!("building the {} basis", crate::basis_name(kind)));
+            let bar = crate::files::phase(format!(
+                "building the {} basis",
+                crate::report::basis_name(kind)
+            ));
             let start = Instant::now();
             let deadline = args.max_seconds.map(|s| start + Duration::from_secs_f64(s));
             let built = match kind {

@@ -51,7 +51,7 @@ pub fn write_corrupted(
 }
 
 pub fn run(args: InjectArgs) -> Result<(), String> {
-    let (graph, _) = crate::load(args.file, args.order)?;
+    let (graph, _) = crate::files::load(args.file, args.order)?;
     let c = sim::inject_outliers(&graph, &args.outliers).map_err(|e| e.to_string())?;
     let extra = json!({ "source": args.file.display().to_string() });
     write_corrupted(&c, &args.outliers, args.out, args.truth, extra)?;

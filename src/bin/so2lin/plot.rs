@@ -72,17 +72,17 @@ fn register_font() -> bool {
 pub fn run(args: PlotArgs) -> Result<(), String> {
     let head = is_mcap(args.input).map_err(|e| format!("{}: {e}", args.input.display()))?;
     let (graph, solved) = if head {
-        crate::in_phase("replaying the log and solving", || {
+        crate::files::in_phase("replaying the log and solving", || {
             from_log(args.input, &args.refine, args.all_hypotheses)
         })?
     } else {
-        let (graph, _) = crate::load(args.input, args.order)?;
-        let solved = crate::in_phase("screening and solving", || {
+        let (graph, _) = crate::files::load(args.input, args.order)?;
+        let solved = crate::files::in_phase("screening and solving", || {
             solve_graph(&graph, &args.config, &args.refine, args.all_hypotheses)
         })?;
         (graph, solved)
     };
-    let n = crate::in_phase("drawing", || {
+    let n = crate::files::in_phase("drawing", || {
         plot_solved(&graph, &solved, args.out, args.size)
     })?;
     println!(

@@ -44,7 +44,7 @@ pub fn run(path: &Path, verify: bool, as_json: bool) -> Result<(), String> {
             let between = if done > 0 {
                 format!(
                     ", and what the maintenance between steps did, {}",
-                    crate::plural(done, "time", "times")
+                    crate::report::plural(done, "time", "times")
                 )
             } else {
                 String::new()

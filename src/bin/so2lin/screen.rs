@@ -50,19 +50,19 @@ pub fn estimate_best(graph: &PoseGraph, r: &BatchResult) -> Result<Option<Estima
 
 pub fn run(args: ScreenArgs) -> Result<(), String> {
     let t0 = Instant::now();
-    let (graph, _) = crate::load(args.file, args.order)?;
+    let (graph, _) = crate::files::load(args.file, args.order)?;
     let read_s = t0.elapsed().as_secs_f64();
     let what = format!(
         "screening {} edges, {} cycles",
         graph.edge_count(),
         graph.stats().cycles
     );
-    let r =
-        crate::in_phase(what, || batch::screen(&graph, &args.config)).map_err(|e| e.to_string())?;
-    let est = crate::in_phase("estimating orientations", || estimate_best(&graph, &r))?;
+    let r = crate::files::in_phase(what, || batch::screen(&graph, &args.config))
+        .map_err(|e| e.to_string())?;
+    let est = crate::files::in_phase("estimating orientations", || estimate_best(&graph, &r))?;
     let s = args.config.screening;
     let translation = batch::translation_failures(&graph, &r.basis, &s);
-    let rejected = crate::in_phase("streaming the cycle tests", || {
+    let rejected = crate::files::in_phase("streaming the cycle tests", || {
         batch::quarantined(&graph, s.alpha)
     })
     .map_err(|e| e.to_string())?;
@@ -130,13 +130,13 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
     if let Some(f) = &r.fallback {
         println!(
             "basis {} not used ({}): falling back to the incremental basis",
-            crate::basis_name(f.requested),
+            crate::report::basis_name(f.requested),
             f.reason
         );
     }
     println!(
         "basis {}: weight {:.4}, mean cycle length {:.1}, max {}, {:.4} s",
-        crate::basis_name(r.basis.kind),
+        crate::report::basis_name(r.basis.kind),
         r.basis.weight(&sigma2),
         r.basis.mean_length(),
         r.basis.max_length(),
@@ -160,7 +160,7 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
     print_table(&r.first);
     match r.outcome {
         SecondOutcome::TooMany(_) | SecondOutcome::NoneInside => {
-            if let Some(words) = crate::second_screening_words(&r, s.joint_level()) {
+            if let Some(words) = crate::report::second_screening_words(&r, s.joint_level()) {
                 println!("{words}");
             }
         }
@@ -193,31 +193,31 @@ pub fn run(args: ScreenArgs) -> Result<(), String> {
         r.determined,
         r.model.len(),
         r.ambiguous.len(),
-        crate::plural(r.hypotheses.len(), "hypothesis", "hypotheses")
+        crate::report::plural(r.hypotheses.len(), "hypothesis", "hypotheses")
     );
     for (k, h) in r.hypotheses.iter().take(10).enumerate() {
         println!(
             "  #{:<3} χ² = {:<12} p = {}",
             k + 1,
-            crate::fixed(h.chi2, 4),
-            crate::fixed(h.p_value, 4)
+            crate::report::fixed(h.chi2, 4),
+            crate::report::fixed(h.p_value, 4)
         );
     }
     if !translation.is_empty() {
         println!(
             "{} failed the SE(2) translation closure test (family-wise, each at the per-cycle level):",
-            crate::plural(translation.len(), "cycle", "cycles")
+            crate::report::plural(translation.len(), "cycle", "cycles")
         );
         for f in translation.iter().take(10) {
             println!("  {f} ({} edges)", f.edges.len());
         }
     }
-    crate::print_rejected(
+    crate::report::print_rejected(
         &rejected,
         "fail their cycle tests as they arrive in robot order (`stream` quarantines them, `solve` leaves them out; the screening above includes them)",
     );
     let edges_words = if rejected.is_empty() {
-        crate::accepted_words(r.edges, 0)
+        crate::report::accepted_words(r.edges, 0)
     } else {
         format!(
             "computed with all {} edges, including the {} listed above",
@@ -244,7 +244,7 @@ fn print_table(rows: &[Iteration]) {
             it.iteration,
             it.determined_percent,
             it.density,
-            crate::fixed(it.log10_candidates, 2),
+            crate::report::fixed(it.log10_candidates, 2),
             it.seconds
         );
     }

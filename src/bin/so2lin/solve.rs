@@ -105,7 +105,7 @@ pub fn solve_screened_with(
 
 pub fn run(args: SolveArgs) -> Result<(), String> {
     let t0 = Instant::now();
-    let (graph, _) = crate::load(args.file, args.order)?;
+    let (graph, _) = crate::files::load(args.file, args.order)?;
     let read_seconds = t0.elapsed().as_secs_f64();
     let solved = solve_graph_with(
         &graph,
@@ -177,11 +177,13 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
         graph.node_count(),
         graph.edge_count(),
         r.basis.kind,
-        crate::plural(r.hypotheses.len(), "hypothesis", "hypotheses"),
+        crate::report::plural(r.hypotheses.len(), "hypothesis", "hypotheses"),
         1e3 * read_seconds,
         1e3 * solved.screen_seconds
     );
-    if let Some(words) = crate::second_screening_words(r, args.config.screening.joint_level()) {
+    if let Some(words) =
+        crate::report::second_screening_words(r, args.config.screening.joint_level())
+    {
         println!("{words}");
     }
     println!(
@@ -228,11 +230,11 @@ pub fn run(args: SolveArgs) -> Result<(), String> {
                     by(&["leave_out"]),
                     rc.alpha
                 );
-                crate::print_rejected(&best.rejected, "rejected");
+                crate::report::print_rejected(&best.rejected, "rejected");
             }
         }
         if let Some(scales) = &best.noise_scales {
-            crate::print_noise_scales(scales);
+            crate::report::print_noise_scales(scales);
         }
         if let Some(d) = best.drop_scale {
             let quarantine = best.noise_scales.map_or(1.0, |s| s.larger());

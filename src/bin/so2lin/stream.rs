@@ -145,7 +145,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     let mut est = OnlineEstimator::new(args.config).map_err(|e| e.to_string())?;
     // Skipped lines are reported and a file without a 2D edge is an error, as for every
     // command.
-    let (graph, _) = crate::load(args.file, args.info_order)?;
+    let (graph, _) = crate::files::load(args.file, args.info_order)?;
     let edges = graph.edges().to_vec();
     let nodes = graph.node_count();
     drop(graph);
@@ -179,7 +179,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     let t0 = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_nanos() as u64);
-    let bar = crate::progress_bar(edges.len() as u64 * 64, "streaming");
+    let bar = crate::files::progress_bar(edges.len() as u64 * 64, "streaming");
     let (mut all, mut tree, mut cyc) = (Vec::new(), Vec::new(), Vec::new());
     // Work per step (search nodes, estimate entries, conditioning entries): counted, so the
     // same on every machine (module `so2lin::work`).
@@ -253,7 +253,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             eprintln!(
                 "log written to {} ({} waited for the log writer's flush, longest {:.2} ms; at most {} steps were unflushed at any time)",
                 path.display(),
-                crate::plural(b.steps_waited as usize, "step", "steps"),
+                crate::report::plural(b.steps_waited as usize, "step", "steps"),
                 b.longest_wait_ns as f64 / 1e6,
                 args.log_options.max_backlog.max(1),
             );
@@ -341,12 +341,12 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     println!(
         "{}: {} streamed, {} accepted ({} tree edges, {} cycles), {} in quarantine, {}",
         args.file.display(),
-        crate::plural(est.arrivals(), "edge", "edges"),
+        crate::report::plural(est.arrivals(), "edge", "edges"),
         c.steps,
         c.tree_edges,
         c.cycles,
         c.quarantined,
-        crate::plural(est.graph().node_count(), "node", "nodes"),
+        crate::report::plural(est.graph().node_count(), "node", "nodes"),
     );
     let read = match args.estimate {
         EstimateQuery::None => "no estimate read",
@@ -397,14 +397,14 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         c.rescreens,
         c.reorders,
         c.estimate_renewals,
-        crate::plural(c.renewal_waits, "step", "steps"),
+        crate::report::plural(c.renewal_waits, "step", "steps"),
         c.estimate_relinearisations
     );
     if args.maintain {
         println!(
             "maintenance between the steps (not in their latency): {} of the estimate's factor and {} of its positions alone, {:.4} s in all, the longest call {:.2} ms",
-            crate::plural(maintenance.renewals, "renewal", "renewals"),
-            crate::plural(
+            crate::report::plural(maintenance.renewals, "renewal", "renewals"),
+            crate::report::plural(
                 maintenance.relinearisations,
                 "re-linearisation",
                 "re-linearisations"
@@ -419,29 +419,30 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             c.rebuilds, c.rebuilds_from_checkpoint, c.replayed_arrivals
         );
     }
-    let second = crate::second_screening_words(&result, args.config.screening.joint_level())
-        .unwrap_or_else(|| "second screening complete".into());
+    let second =
+        crate::report::second_screening_words(&result, args.config.screening.joint_level())
+            .unwrap_or_else(|| "second screening complete".into());
     println!(
         "finish: {} determined, {} ambiguous, {} ({second})",
         result.determined,
         result.ambiguous.len(),
-        crate::plural(result.hypotheses.len(), "hypothesis", "hypotheses"),
+        crate::report::plural(result.hypotheses.len(), "hypothesis", "hypotheses"),
     );
     for (k, h) in result.hypotheses.iter().take(10).enumerate() {
         println!("  #{:<3} χ² = {:<12.4} p = {:.4}", k + 1, h.chi2, h.p_value);
     }
-    crate::print_rejected(&rejected, "quarantined (kept out of the estimate)");
-    crate::print_noise_scales(&est.noise_scales());
+    crate::report::print_rejected(&rejected, "quarantined (kept out of the estimate)");
+    crate::report::print_noise_scales(&est.noise_scales());
     if c.readmitted > 0 {
         println!(
             "{} re-admitted after a later re-test",
-            crate::plural(c.readmitted, "loop closure", "loop closures")
+            crate::report::plural(c.readmitted, "loop closure", "loop closures")
         );
     }
     println!(
         "success probability ≥ {:.6} (integer bootstrapping; assumes the declared noise; {})",
         result.success_lower_bound,
-        crate::accepted_words(c.steps, rejected.len())
+        crate::report::accepted_words(c.steps, rejected.len())
     );
     let rss = rss.map_or("n/a".to_owned(), |b| format!("{:.1} MB", b as f64 / 1e6));
     println!(
