@@ -24,10 +24,10 @@
 //! scratch). Landmarks are kept only once the owner wants them ([`Landmarks::want`]: the
 //! incremental basis does when its searches often cross the map), and then as the graph
 //! grows — the first at [`FIRST_LANDMARK_AT`] nodes, one more at each doubling, up to
-//! [`MAX_LANDMARKS`] (as many at once as the graph's size calls for when they are wanted
-//! late) — each the node farthest from the landmarks so far (from the newest node for the
-//! first), which puts them on the map's periphery; a new one costs one search of the whole
-//! graph.
+//! [`MAX_LANDMARKS`] (when they are wanted late, the ones the graph's size calls for at the
+//! edges that follow, one per edge) — each the node farthest from the landmarks so far (from
+//! the newest node for the first), which puts them on the map's periphery; a new one costs one
+//! search of the whole graph.
 //!
 //! Measured before writing this (a Python prototype on M3500 streamed in robot order, a search
 //! from the newest node to a random older one at a fifth of the arrivals, five landmarks):
@@ -150,12 +150,13 @@ impl Landmarks {
         if self.next_at == 0 {
             self.next_at = FIRST_LANDMARK_AT;
         }
-        // As many as the schedule gives a graph of this size (several at once when they
-        // were wanted late).
-        if n >= self.next_at {
+        // One at a time: the schedule's next size reached adds one landmark at this edge; a
+        // graph that wanted them late, and so is past several sizes, gets the others at the
+        // edges that follow, one each (each costs a search of the whole graph: added all at
+        // once they made a 100 000-pose world's slowest step with `maintain`, 24 ms for
+        // five).
+        if n >= self.next_at && self.count < MAX_LANDMARKS {
             self.reserve_nodes(adj.len());
-        }
-        while n >= self.next_at && self.count < MAX_LANDMARKS {
             self.next_at = self.next_at.saturating_mul(2);
             self.add_landmark(adj, w, b, search);
         }
@@ -348,6 +349,14 @@ mod tests {
         }
     }
 
+    /// `check` run from landmark l of `g` (the node at distance 0) over the whole graph.
+    fn search_from_landmark(g: &Growing, l: usize, check: &mut Dijkstra) {
+        let src = (0..g.adj.len())
+            .find(|&u| g.lm.distance(l, u) == 0.0)
+            .expect("a landmark at distance 0");
+        check.run(&g.adj, &g.w, src, None, f64::INFINITY);
+    }
+
     /// A graph grown edge by edge — a chain with new nodes, loop closures of random weights
     /// (some far, some parallel), a second component joined later — keeps every landmark's
     /// distances equal to a search of the whole graph after every edge, and the bound below
@@ -396,11 +405,7 @@ mod tests {
                     );
                 }
                 for l in 0..g.lm.count() {
-                    // The landmark is the node at distance 0.
-                    let src = (0..g.adj.len())
-                        .find(|&u| g.lm.distance(l, u) == 0.0)
-                        .expect("a landmark at distance 0");
-                    check.run(&g.adj, &g.w, src, None, f64::INFINITY);
+                    search_from_landmark(&g, l, &mut check);
                     for u in 0..g.adj.len() {
                         let exact = if check.settled(u) {
                             check.dist(u)
@@ -434,6 +439,43 @@ mod tests {
                 "bound {} above {exact}",
                 g.lm.bound(s)
             );
+        }
+    }
+
+    /// Landmarks wanted late — the graph already past three sizes of the schedule (256, 512
+    /// and 1 024 nodes) — come one per edge at the edges that follow, not all at one edge
+    /// (each costs a search of the whole graph), and each has its exact distances.
+    #[test]
+    fn landmarks_wanted_late_come_one_per_edge() {
+        let mut g = Growing::default();
+        let mut state = 11;
+        // A chain of 1 100 nodes with loop closures, grown while no landmark is wanted.
+        for v in 1..1_100usize {
+            for (u, x) in [(v - 1, 1.0), ((lcg(&mut state) as usize) % v, 5.0)] {
+                while g.adj.len() <= v {
+                    g.adj.push(SmallVec::new());
+                }
+                let e = g.w.len() as u32;
+                g.w.push(x);
+                g.adj[u].push((v as u32, e));
+                g.adj[v].push((u as u32, e));
+                let Growing { adj, w, lm, search } = &mut g;
+                lm.edge_added(adj, w, (u, v, x), search);
+            }
+        }
+        assert_eq!(g.lm.count(), 0);
+        let mut counts = Vec::new();
+        for k in 0..4 {
+            g.add(k, 1_099 - k, 2.0);
+            counts.push(g.lm.count());
+        }
+        assert_eq!(counts, [1, 2, 3, 3]);
+        let mut check = Dijkstra::default();
+        for l in 0..g.lm.count() {
+            search_from_landmark(&g, l, &mut check);
+            for u in 0..g.adj.len() {
+                assert_eq!(g.lm.distance(l, u), check.dist(u), "landmark {l}, node {u}");
+            }
         }
     }
 
