@@ -5,7 +5,6 @@
 //! only a driver: every formula lives in [`crate::cycles`], [`crate::gamma`],
 //! [`crate::screening`], [`crate::wraps`] and [`crate::estimate`].
 //!
-//!
 //! **Robust poses** against false loop closures (the DCS kernel, the quarantine stream, the
 //! leave-out test): [`robust`], re-exported here.
 
