@@ -536,20 +536,24 @@ mod tests {
     /// is due again only once enough nodes were appended since.
     #[test]
     fn a_renewal_now_replaces_the_one_beside() {
+        // A node with its odometry edge, and every fifth one a loop closure 20 nodes back.
+        let grow = |l: &mut Laplacian<1>, loops: bool| {
+            let v = l.add_node();
+            l.add_edge(v - 1, v, 4.0, [0.1]);
+            if loops && v % 5 == 0 && v > 20 {
+                l.add_edge(v - 20, v, 1.0, [2.05]);
+            }
+        };
         let mut l = Laplacian::<1>::default();
         l.add_node();
         while !l.renewing() {
-            let v = l.add_node();
-            l.add_edge(v - 1, v, 4.0, [0.1]);
-            if v % 5 == 0 && v > 20 {
-                l.add_edge(v - 20, v, 1.0, [2.05]);
-            }
+            grow(&mut l, true);
             l.after_step(|| None);
         }
         // Three nodes appended since the renewal beside started (its snapshot).
+        let loops_until = l.len();
         for _ in 0..3 {
-            let v = l.add_node();
-            l.add_edge(v - 1, v, 4.0, [0.1]);
+            grow(&mut l, false);
             l.after_step(|| None);
         }
         assert!(l.renewing());
@@ -566,12 +570,10 @@ mod tests {
         // to the first walks the fresh order, less than the live factor's before it did.
         let mut old = Laplacian::<1>::default();
         old.add_node();
-        for v in 1..l.len() {
-            old.add_node();
-            old.add_edge(v - 1, v, 4.0, [0.1]);
-            if v % 5 == 0 && v > 20 {
-                old.add_edge(v - 20, v, 1.0, [2.05]);
-            }
+        // The same graph, every node appended in arrival order.
+        for _ in 1..l.len() {
+            let loops = old.len() < loops_until;
+            grow(&mut old, loops);
         }
         let n = l.len() - 1;
         let (_, a) = old.work_and_nnz();
