@@ -540,7 +540,7 @@ mod tests {
         let grow = |l: &mut Laplacian<1>, loops: bool| {
             let v = l.add_node();
             l.add_edge(v - 1, v, 4.0, [0.1]);
-            if loops && v % 5 == 0 && v > 20 {
+            if loops && v.is_multiple_of(5) && v > 20 {
                 l.add_edge(v - 20, v, 1.0, [2.05]);
             }
         };
