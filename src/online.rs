@@ -107,7 +107,8 @@
 //! number of cycles has doubled since its last test (and grown by at least 32), or grown
 //! eightfold when it failed by far (χ² above 8× the threshold: a random false edge, whose
 //! re-tests cost a search of the graph each): O(log ℓ) tests
-//! per edge. The re-test is at the per-cycle level α, not the family-wise α_t — stricter, so a
+//! per edge, at most one a step (the earliest due first; a re-admission closes a cycle, which
+//! may bring other dates, and a thousand re-tests in one step would stall the robot). The re-test is at the per-cycle level α, not the family-wise α_t — stricter, so a
 //! false edge rarely slips in by being tried again, while a genuine edge quarantined by a path
 //! through an accepted false edge that has since been bypassed passes. One exception: when the
 //! failed test's noise scale has risen above 1 (and above its value at the failure) since, the

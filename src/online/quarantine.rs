@@ -7,7 +7,10 @@
 //! ℓ_retest = max(2ℓ, ℓ + 32),   or max(8ℓ, ℓ + 32) when it failed by far (χ² > 8 × threshold),
 //! ```
 //!
-//! so each held edge costs O(log ℓ) re-tests, each a search of the graph. A re-test is at the
+//! so each held edge costs O(log ℓ) re-tests, each a search of the graph. At most
+//! [`RETESTS_PER_STEP`] are re-tested in one step, the earliest due first: the others wait for
+//! the next steps, so that a step never does more than its own edge's work and one re-test's.
+//! A re-test is at the
 //! per-cycle level α (stricter than the family-wise α_t of arrivals), or at its arrival's level
 //! when the failed test's noise scale has since risen above 1 (module docs of
 //! [`crate::online`]: re-admission).
@@ -71,6 +74,24 @@ pub(super) fn translation_by_far(tested: f64, threshold: f64) -> bool {
 /// stay rare), and those streams' decisions did not change.
 const FAR: f64 = 8.0;
 
+/// Quarantined loop closures re-tested in one step, at most ([`OnlineEstimator::retest_due`]):
+/// the earliest due first, the rest at the steps that follow. A re-test is a loop closure's
+/// step — a search, the screening, the estimate's rotations — and every re-admission closes a
+/// cycle, which brings the next held edge's date: on the clean w20000.txt, 1 040 loop
+/// closures quarantined while its translation scale was rising came due in one step (arrival
+/// 16 135), which re-admitted 1 039 of them and took 0.2 s (`so2lin stream w20000.txt
+/// --json`: robot order, the newest pose read after every step). One a step: the same
+/// decisions to the edge (1 219 re-admitted in all, none held at the end; every file of the
+/// benchmark folder and twelve of M3500 + 1 000 false loop closures likewise), that stream's
+/// worst step 5.5–5.9 ms instead of 0.2 s (its warm-up replay, or a long loop's translation
+/// closure), its p99 up by a sixth to a half (a loop closure's work more in each of a thousand
+/// steps: what a stall costs when it is spread). A held edge is re-tested O(log ℓ) times, at
+/// dates that at least double, and at most one edge is held per arrival, so the backlog a
+/// burst leaves drains at one a step unless most arrivals are held and fail again and again;
+/// an edge whose date has come but whose re-test waits is still held (listed by
+/// [`OnlineEstimator::rejected`]), at the end of a stream too.
+pub(super) const RETESTS_PER_STEP: usize = 1;
+
 impl OnlineEstimator {
     /// `edge` quarantined after failing `rejected` (its test at `level`), re-tested at cycle
     /// count `due`, with the failed test's current noise scale.
@@ -131,11 +152,13 @@ impl OnlineEstimator {
     }
 
     /// Re-test the quarantined loop closures whose time has come (module docs: re-admission),
-    /// through the path a new loop closure takes, at the level of [`Held::level`]. Re-admitted edges
-    /// and the cycles their determination re-screened are added to `step`.
+    /// through the path a new loop closure takes, at the level of [`Held::level`], at most
+    /// [`RETESTS_PER_STEP`] of them (the earliest due first; the rest stay due). Re-admitted
+    /// edges and the cycles their determination re-screened are added to `step`.
     pub(super) fn retest_due(&mut self, step: &mut Step) {
+        let mut retests = 0;
         while let Some(&(due, input)) = self.due.first() {
-            if due > self.counters.cycles {
+            if due > self.counters.cycles || retests == RETESTS_PER_STEP {
                 break;
             }
             self.due.pop_first();
@@ -145,6 +168,7 @@ impl OnlineEstimator {
             let Some((a, b)) = self.ends(&held.edge) else {
                 continue;
             };
+            retests += 1;
             // At the per-cycle level α; at the arrival's level when the data have shown the
             // declared noise too tight since (the failed test's scale risen above 1 and above
             // what it was): the failure may be the noise model's, not the edge's (module docs).
@@ -190,5 +214,73 @@ impl OnlineEstimator {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{Held, RETESTS_PER_STEP};
+    use crate::batch::RejectedEdge;
+    use crate::estimate::OrientationEstimator;
+    use crate::online::{ANGLE_TEST, OnlineConfig, OnlineEstimator, robot_order_indices};
+    use crate::sim::{SimConfig, simulate};
+
+    /// Genuine loop closures of a simulated world put in quarantine as they arrive, all due
+    /// for their re-test at the same cycle count: they come back one per step (the first
+    /// step at their date re-admits one, not all), every one of them by the end, and the
+    /// orientations equal the batch estimate of the accepted graph after every step. Fails
+    /// if a step re-tests more than [`RETESTS_PER_STEP`] (the old loop re-admitted all six at
+    /// once).
+    #[test]
+    fn due_retests_come_one_per_step() {
+        const HELD: usize = 6;
+        let world = simulate(&SimConfig::new(400, 5)).unwrap();
+        let edges = world.graph.edges();
+        let order = robot_order_indices(edges);
+        let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+        let (mut held, mut date) = (Vec::new(), None);
+        let mut per_step = Vec::new();
+        for &i in &order {
+            let edge = edges[i];
+            let chord = matches!(est.ends(&edge), Some((a, b)) if est.basis.connected(a, b));
+            if chord && est.counters.cycles >= 20 && held.len() < HELD {
+                // Held as a failed arrival would be, due a few cycles on (the same date for all).
+                let due = *date.get_or_insert(est.counters.cycles + 5);
+                let rejected = RejectedEdge {
+                    edge: est.arrivals,
+                    from: edge.from(),
+                    to: edge.to(),
+                    test: ANGLE_TEST,
+                    statistic: 1.0,
+                    threshold: 0.5,
+                };
+                held.push(est.arrivals);
+                let level = est.config.screening.alpha;
+                let h: Held = est.held(edge, rejected, due, false, level);
+                est.hold_until(h);
+                est.arrivals += 1;
+                est.refresh_counters();
+                continue;
+            }
+            let step = est.add_edge(edge).unwrap();
+            per_step.push(step.readmitted.len());
+            let want = OrientationEstimator::new(est.graph())
+                .unwrap()
+                .orientations(&est.wraps().unwrap());
+            for (a, b) in est.orientations().unwrap().iter().zip(&want) {
+                assert!((a - b).abs() < 1e-9, "{a} vs {b}");
+            }
+        }
+        assert_eq!(held.len(), HELD, "too few loop closures in the world");
+        // (step, re-admissions) of the steps that re-admitted any.
+        let back: Vec<(usize, usize)> = (per_step.iter().enumerate())
+            .filter(|&(_, &n)| n > 0)
+            .map(|(i, &n)| (i, n))
+            .collect();
+        assert!(back.iter().all(|&(_, n)| n <= RETESTS_PER_STEP), "{back:?}");
+        assert_eq!(back.len(), HELD, "{back:?}");
+        assert!(back.windows(2).all(|w| w[1].0 == w[0].0 + 1), "{back:?}");
+        assert_eq!(est.counters().readmitted, HELD);
+        assert!(est.rejected().is_empty(), "{:?}", est.rejected());
     }
 }
