@@ -302,6 +302,12 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         self.nnz + self.diag.len()
     }
 
+    /// Variable `v`'s position in the order (tests).
+    #[cfg(test)]
+    pub(crate) fn position_of(&self, v: usize) -> u32 {
+        self.pos_of[v]
+    }
+
     /// Append variable `v` (the next unused id is expected, but any id works) at the end of the
     /// order, with an empty row.
     pub fn push_variable(&mut self, v: usize) {

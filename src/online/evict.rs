@@ -256,6 +256,8 @@ impl OnlineEstimator {
         );
         // The caller's room again: the estimate's factors were built at the replay's end.
         fresh.keep_room(self.room_for);
+        // Its factors are built from these at its first read, when they match.
+        fresh.estimate.inherit(&mut self.estimate);
         // The replaced estimator (its factors, thousands of rows) is freed on the worker,
         // not in this step.
         let old = std::mem::replace(self, fresh);

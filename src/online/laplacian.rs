@@ -488,6 +488,108 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         self.deferred = false;
     }
 
+    /// [`Self::rebuild`] from `old`'s factor instead of a new build: `old` is the system this
+    /// one replaces (an estimator rebuilt by a replay, whose rows differ from the replaced
+    /// one's in a few loop closures: the evicted ones, those re-admitted). The rows and anchor
+    /// priors only this system has are rotated into `old`'s factor, then those only `old` has
+    /// are down-dated (rows matched by their ends and weights), and the right-hand sides are
+    /// recomputed from this system's rows (one forward solve): a few paths and one pass over
+    /// the factor instead of a whole build in the replay's step. The factor keeps `old`'s order
+    /// and renewal schedule, and its worker thread is taken over. False, with nothing of this
+    /// system changed, when the rows differ in more than a sixteenth (and 32) or a down-date
+    /// fails; the caller then rebuilds.
+    pub fn adopt(&mut self, mut old: Box<Self>) -> bool {
+        // (The replaced system's worker goes on serving this one; `old` is freed on it.)
+        self.worker = std::mem::take(&mut old.worker);
+        old.drop_renewal();
+        let adopted = self.deferred
+            && !old.deferred
+            && old.tried.is_none()
+            && old.len() <= self.len()
+            && self.adopted(&mut old);
+        self.worker.retire("so2lin-renew", old);
+        adopted
+    }
+
+    /// [`Self::adopt`] once the two systems are known to be comparable.
+    fn adopted(&mut self, old: &mut Self) -> bool {
+        // (ends, weights' bits, index), sorted: the rows in an order that matches equal rows.
+        let keyed = |rows: &Rows<K, L>| {
+            let mut keys: Vec<((u32, u32), [u64; L], u32)> = (0..rows.ends.len())
+                .map(|e| (rows.ends[e], rows.sqrt_w[e].map(f64::to_bits), e as u32))
+                .collect();
+            keys.sort_unstable();
+            keys
+        };
+        let (mine, theirs) = (keyed(&self.rows), keyed(&old.rows));
+        let (mut added, mut removed) = (Vec::new(), Vec::new());
+        let (mut i, mut j) = (0, 0);
+        while i < mine.len() || j < theirs.len() {
+            match (mine.get(i), theirs.get(j)) {
+                (Some(a), Some(b)) if (a.0, a.1) == (b.0, b.1) => (i, j) = (i + 1, j + 1),
+                (Some(a), Some(b)) if (a.0, a.1) > (b.0, b.1) => {
+                    removed.push(b.2 as usize);
+                    j += 1;
+                }
+                (Some(a), _) => {
+                    added.push(a.2 as usize);
+                    i += 1;
+                }
+                (None, Some(b)) => {
+                    removed.push(b.2 as usize);
+                    j += 1;
+                }
+                (None, None) => break,
+            }
+        }
+        let n = self.len();
+        let priors = |p: &[[f64; L]], v: usize| p.get(v).copied().unwrap_or([0.0; L]);
+        let moved_priors: Vec<usize> = (0..n)
+            .filter(|&v| priors(&self.prior, v) != priors(&old.prior, v))
+            .collect();
+        let changes = added.len() + removed.len() + moved_priors.len() + (n - old.len());
+        if changes > 32.max(self.rows.ends.len() / 16) {
+            return false;
+        }
+        let mut factor = std::mem::take(&mut old.factor);
+        for v in old.len()..n {
+            factor.push_variable(v);
+        }
+        // Information in first, then out: the down-dates meet the larger factor.
+        for &v in &moved_priors {
+            let p = self.prior[v];
+            if p != [0.0; L] {
+                factor.add_row(&[(v, p)], [0.0; K]);
+            }
+        }
+        for &e in &added {
+            factor.add_row(&self.rows.entries(e), [0.0; K]);
+        }
+        for &v in &moved_priors {
+            let p = priors(&old.prior, v);
+            if p != [0.0; L] && factor.remove_row(&[(v, p)], [0.0; K]).is_err() {
+                return false;
+            }
+        }
+        for &e in &removed {
+            if factor.remove_row(&old.rows.entries(e), [0.0; K]).is_err() {
+                return false;
+            }
+        }
+        reset_rhs(&mut factor, &self.rows, 0);
+        factor.take_work();
+        self.factor = factor;
+        self.stale_rhs = None;
+        // The replaced factor's schedule: its renewal in progress was dropped, and the next
+        // step starts one if it is due.
+        self.fill_after_renewal = old.fill_after_renewal;
+        self.nodes_at_renewal = old.nodes_at_renewal;
+        self.dissection = old.dissection.take();
+        self.last_edge = None;
+        self.deferred = false;
+        true
+    }
+
     /// Swap in a factor built in a new order (a renewal's, or a rebuild's): its build's work is
     /// not the live factor's, its fill per row is the next renewal's reference, and the old
     /// factor is freed on the worker (a factor's thousands of rows cost a step about a
@@ -600,6 +702,74 @@ fn reset_rhs<const K: usize, const L: usize>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A replay's system, deferred, built from the factor of the system it replaces
+    /// ([`Laplacian::adopt`]): a loop closure the replaced one had is gone (evicted), one it
+    /// lacked is in (re-admitted), a wrap moved, two nodes and a new component (its anchor's
+    /// prior) are new. The answers equal a whole build's to 1e-9, in the replaced factor's
+    /// order; a system that differs in too many rows is not adopted (the caller rebuilds).
+    #[test]
+    fn a_replays_system_adopts_the_replaced_factor() {
+        let chain = |l: &mut Laplacian<3>, n: usize| {
+            l.add_node();
+            for v in 1..n {
+                l.add_node();
+                l.add_edge(v - 1, v, 4.0, [0.01, 1.0, 0.0]);
+            }
+        };
+        let mut old = Laplacian::<3>::default();
+        chain(&mut old, 300);
+        for v in (40..300).step_by(9) {
+            old.add_edge(v - 35, v, 2.0, [0.3, 0.5, 30.0]);
+        }
+        // The replaced system: one false loop closure among them.
+        old.add_edge(10, 290, 2.0, [3.0, 1.0, 1.0]);
+        let replay = |readmitted: bool| {
+            let mut l = Laplacian::<3>::default();
+            l.defer();
+            chain(&mut l, 302);
+            for v in (40..300).step_by(9) {
+                let wrap = if v == 103 {
+                    0.3 - std::f64::consts::TAU
+                } else {
+                    0.3
+                };
+                l.add_edge(v - 35, v, 2.0, [wrap, 0.5, 30.0]);
+            }
+            if readmitted {
+                l.add_edge(50, 250, 3.0, [0.7, 2.0, -1.0]);
+            }
+            // Two nodes of a new component.
+            l.add_node();
+            l.add_node();
+            l.add_edge(302, 303, 5.0, [0.1, 1.0, 1.0]);
+            l
+        };
+        let mut built = replay(true);
+        built.rebuild();
+        let mut adopted = replay(true);
+        let order: Vec<u32> = (0..300).map(|v| old.factor.position_of(v)).collect();
+        assert!(adopted.adopt(Box::new(old)));
+        assert!(!adopted.deferred());
+        for q in 0..3 {
+            let (a, b) = (adopted.all(q), built.all(q));
+            assert_eq!(a.len(), 304);
+            for (x, y) in a.iter().zip(&b) {
+                assert!((x - y).abs() < 1e-9, "column {q}: {x} vs {y}");
+            }
+        }
+        // The replaced factor's order (its nodes where they were), not a new build's.
+        let kept: Vec<u32> = (0..300).map(|v| adopted.factor.position_of(v)).collect();
+        let fresh: Vec<u32> = (0..300).map(|v| built.factor.position_of(v)).collect();
+        assert_eq!(kept, order);
+        assert_ne!(fresh, order);
+        // Too many rows apart: not adopted, nothing of the replay's system changed.
+        let mut other = Laplacian::<3>::default();
+        chain(&mut other, 250);
+        let mut far = replay(false);
+        assert!(!far.adopt(Box::new(other)));
+        assert!(far.deferred());
+    }
 
     /// A re-linearisation rewrites the rows at once and their right-hand sides at the end of
     /// the next step: in between the factor answers as before it (the headings' column
