@@ -296,6 +296,32 @@ mod tests {
     use crate::online::replay::tests::wide_outlier_world;
     use crate::online::{OnlineConfig, OnlineEstimator, robot_order_indices};
 
+    /// Streams through several evictions, read at their end: every replay's estimate factor
+    /// derived from the one it replaces (`Laplacian::adopt`: thirteen times over these four
+    /// worlds, some from a factor that was itself derived), the answer at the end is the batch
+    /// estimate of the accepted graph to 1e-9 — the down-dates' rounding does not pile up.
+    #[test]
+    fn derived_factors_estimate_exactly_after_many_evictions() {
+        let mut rebuilds = 0;
+        for seed in 0..4u64 {
+            let (edges, _) = wide_outlier_world(seed, false);
+            let order = robot_order_indices(&edges);
+            let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+            est.checkpoint_interval = 128;
+            for &i in &order {
+                est.add_edge(edges[i]).unwrap();
+            }
+            rebuilds += est.counters().rebuilds;
+            let want = OrientationEstimator::new(est.graph())
+                .unwrap()
+                .orientations(&est.wraps().unwrap());
+            for (a, b) in est.orientations().unwrap().iter().zip(&want) {
+                assert!((a - b).abs() < 1e-9, "seed {seed}: {a} vs {b}");
+            }
+        }
+        assert!(rebuilds >= 8, "{rebuilds} rebuilds: too few to test");
+    }
+
     /// Simulated worlds with 40 random false loop closures and declared noise 16× too wide
     /// (evictions happen), streamed with a checkpoint every 128 arrivals and copies before
     /// doubtful loop closures, with the latter alone, and with none. After

@@ -391,7 +391,12 @@ impl Factors {
                 both.adopt(old)
             }
             (Factors::Lanes { both }, Some(Factors::Lanes { both: old })) => both.adopt(old),
-            _ => false,
+            (_, None) => false,
+            // Lanes on one side only: freed on the worker, not in this step.
+            (_, Some(old)) => {
+                with_factor!(self, both => both.retire(old));
+                false
+            }
         };
         if !adopted {
             with_factor!(self, both => both.rebuild());
@@ -546,12 +551,18 @@ impl Estimate {
 
     /// Take over `old`'s factors (the estimate of the estimator a replay replaces): this
     /// estimate, deferred, builds its factors from them when they match
-    /// ([`Laplacian::adopt`]), instead of from nothing. Nothing when `old` has a loop closure
-    /// tried and not yet kept or undone.
+    /// ([`Laplacian::adopt`]), instead of from nothing — or from those `old` inherited, if it
+    /// was itself a replay's not read since. Nothing when `old` has a loop closure tried and
+    /// not yet kept or undone.
     pub fn inherit(&mut self, old: &mut Estimate) {
-        if old.tried.is_none() {
-            self.inherited = Some(std::mem::take(&mut old.factors));
+        if old.tried.is_some() {
+            return;
         }
+        self.inherited = if old.factors.deferred() {
+            old.inherited.take()
+        } else {
+            Some(std::mem::take(&mut old.factors))
+        };
     }
 
     /// Keep the loop closure of the last [`Self::try_chord`].

@@ -511,6 +511,11 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         adopted
     }
 
+    /// Free `value` on this system's worker thread, not on the caller's.
+    pub fn retire<T: Send + 'static>(&mut self, value: T) {
+        self.worker.retire("so2lin-renew", value);
+    }
+
     /// [`Self::adopt`] once the two systems are known to be comparable.
     fn adopted(&mut self, old: &mut Self) -> bool {
         // (ends, weights' bits, index), sorted: the rows in an order that matches equal rows.
