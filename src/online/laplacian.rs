@@ -495,9 +495,9 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     /// are down-dated (rows matched by their ends and weights), and the right-hand sides are
     /// recomputed from this system's rows (one forward solve): a few paths and one pass over
     /// the factor instead of a whole build in the replay's step. The factor keeps `old`'s order
-    /// and renewal schedule, and its worker thread is taken over. False, with nothing of this
-    /// system changed, when the rows differ in more than a sixteenth (and 32) or a down-date
-    /// fails; the caller then rebuilds.
+    /// and renewal schedule, and its worker thread is taken over (in any case). False, this
+    /// system's rows and factor unchanged, when the rows differ in more than a sixteenth (and
+    /// 32) or a down-date fails; the caller then rebuilds.
     pub fn adopt(&mut self, mut old: Box<Self>) -> bool {
         // (The replaced system's worker goes on serving this one; `old` is freed on it.)
         self.worker = std::mem::take(&mut old.worker);
