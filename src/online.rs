@@ -93,7 +93,8 @@
 //! (module `replay`: no search across the map), and the estimate's factors are built once at
 //! the replay's end instead of through every replayed step (M3500 + 1000 false edges, the
 //! newest pose read after every step: worst step, a replay, 120–168 ms before both, 39–49 ms
-//! after). An evicted edge is re-tested like a quarantined one, counting from its eviction,
+//! after) — since 2026-12-06 derived from the replaced estimator's factors, which differ from
+//! them in a few rows (module `online/estimate.rs`). An evicted edge is re-tested like a quarantined one, counting from its eviction,
 //! and later replays keep it in quarantine until then (re-tested at its arrival, it would pass
 //! as it first did and be accepted again). After a rebuild, [`Step::quarantined`] lists the
 //! evicted edges (and any other edge the rebuild quarantined), [`Step::readmitted`] the held

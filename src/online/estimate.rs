@@ -89,8 +89,9 @@ pub(crate) enum Op {
     /// From here on the changes go to the systems' rows only, without factor work, until
     /// [`Op::Rebuild`]: a replay of the stream, whose answers nobody reads in between.
     Defer,
-    /// Build the factors of the whole systems at once ([`Laplacian::rebuild`]), every position
-    /// row at the headings of that moment (as a renewal does).
+    /// Build the factors of the whole systems at once ([`Laplacian::rebuild`]), or derive them
+    /// from the factors inherited from the estimate this one replaces ([`Laplacian::adopt`]),
+    /// every position row at the headings of that moment (as a renewal does).
     Rebuild,
 }
 
