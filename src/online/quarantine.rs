@@ -84,7 +84,7 @@ const FAR: f64 = 8.0;
 /// decisions to the edge (1 219 re-admitted in all, none held at the end; every file of the
 /// benchmark folder and twelve of M3500 + 1 000 false loop closures likewise), that stream's
 /// worst step 5.5–5.9 ms instead of 0.2 s (its warm-up replay, or a long loop's translation
-/// closure), its p99 up by a sixth to a half (a loop closure's work more in each of a thousand
+/// closure), its p99 up by an eighth to a half (a loop closure's work more in each of a thousand
 /// steps: what a stall costs when it is spread). A held edge is re-tested O(log ℓ) times, at
 /// dates that at least double, and at most one edge is held per arrival, so the backlog a
 /// burst leaves drains at one a step unless most arrivals are held and fail again and again;
