@@ -94,8 +94,9 @@
 //! the replay's end instead of through every replayed step (M3500 + 1000 false edges, the
 //! newest pose read after every step: worst step, a replay, 120–168 ms before both, 39–49 ms
 //! after) — since 2026-12-06 derived from the replaced estimator's factors, which differ from
-//! them in a few rows (module `online/estimate.rs`). An evicted edge is re-tested like a quarantined one, counting from its eviction,
-//! and later replays keep it in quarantine until then (re-tested at its arrival, it would pass
+//! them in a few rows (module `online/estimate.rs`). An evicted edge is re-tested like a
+//! quarantined one, counting from its eviction, and later replays keep it in quarantine until
+//! then (re-tested at its arrival, it would pass
 //! as it first did and be accepted again). After a rebuild, [`Step::quarantined`] lists the
 //! evicted edges (and any other edge the rebuild quarantined), [`Step::readmitted`] the held
 //! edges the rebuild accepted, and the step's `kind` and `rescreened` describe the step before
@@ -109,8 +110,8 @@
 //! eightfold when it failed by far (χ² above 8× the threshold: a random false edge, whose
 //! re-tests cost a search of the graph each): O(log ℓ) tests
 //! per edge, at most one a step (the earliest due first; a re-admission closes a cycle, which
-//! may bring other dates, and a thousand re-tests in one step would stall the robot). The re-test is at the per-cycle level α, not the family-wise α_t — stricter, so a
-//! false edge rarely slips in by being tried again, while a genuine edge quarantined by a path
+//! may bring other dates, and a thousand re-tests in one step would stall the robot). The
+//! re-test is at the per-cycle level α, not the family-wise α_t — stricter, so a false edge rarely slips in by being tried again, while a genuine edge quarantined by a path
 //! through an accepted false edge that has since been bypassed passes. One exception: when the
 //! failed test's noise scale has risen above 1 (and above its value at the failure) since, the
 //! data have shown the declared noise too tight, and the edge is re-tested at the level it

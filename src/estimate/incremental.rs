@@ -558,7 +558,16 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         from: usize,
         rows: impl IntoIterator<Item = ([(usize, C); N], [f64; K])>,
     ) {
-        let from = from.min(K);
+        self.reset_rhs_in(from..K, rows);
+    }
+
+    /// [`Self::reset_rhs`] for the right-hand sides `columns` only (the others are kept).
+    pub fn reset_rhs_in<const N: usize, C: Lanes<L>>(
+        &mut self,
+        columns: std::ops::Range<usize>,
+        rows: impl IntoIterator<Item = ([(usize, C); N], [f64; K])>,
+    ) {
+        let (from, to) = (columns.start.min(K), columns.end.min(K));
         let n = self.len();
         crate::work::estimated((n + self.nnz) as u64);
         let mut g = vec![[0.0; K]; n];
@@ -566,14 +575,14 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
             for (v, a) in entries {
                 let p = self.pos_of[v] as usize;
                 let a = a.lanes();
-                for q in from..K {
+                for q in from..to {
                     g[p][q] += a[lane::<L>(q)] * beta[q];
                 }
             }
         }
         for k in 0..n {
             let mut dk = g[k];
-            for (q, v) in dk.iter_mut().enumerate().skip(from) {
+            for (q, v) in dk.iter_mut().enumerate().take(to).skip(from) {
                 *v /= self.diag[k][lane::<L>(q)];
             }
             let row = &self.rows[k];
@@ -581,12 +590,12 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
                 let gj = &mut g[j as usize];
                 // Every q, unrolled (K and the lanes known), the kept ones skipped.
                 for q in 0..K {
-                    if q >= from {
+                    if q >= from && q < to {
                         gj[q] -= a[lane::<L>(q)] * dk[q];
                     }
                 }
             }
-            self.d[k][from..].copy_from_slice(&dk[from..]);
+            self.d[k][from..to].copy_from_slice(&dk[from..to]);
         }
     }
 }

@@ -22,7 +22,8 @@
 //! evicted, the re-admitted: [`Estimate::inherit`], [`Laplacian::adopt`]): the replaced
 //! factor takes the difference by rotations and down-dates and one forward solve, and keeps
 //! its order until its next renewal. On M3500 + 1000 false loop closures (random seeds 2–5, 7,
-//! 8, clustered 4; three runs each, medians) the worst step, an eviction's, fell by 0.4–2.2 ms
+//! 8, clustered 4; `so2lin stream FILE --json`: robot order, the newest pose read after every
+//! step; three runs each, medians) the worst step, an eviction's, fell by 0.4–2.2 ms
 //! (9.7–17.2 → 8.8–15.0 ms), the p99 and the steps' time within the runs' noise, while the
 //! estimate's work over the stream rose by 7–19 % (the replaced order kept until the next
 //! renewal, where a rebuild gave a fresh one).

@@ -48,6 +48,14 @@ use crate::estimate::incremental::{Dissection, Lanes, Leftover, SqrtInfo, lane};
 use crate::graph::UnionFind;
 use std::sync::Arc;
 
+/// [`Laplacian::adopt`] derives a factor from another when at most this fraction of the rows
+/// (and at least [`ADOPT_MIN_CHANGES`]) differ — rows and priors added or removed, nodes new —
+/// and builds it whole otherwise: each difference is a rotation along a path, and down-dated
+/// rows lose precision as they add up.
+const ADOPT_CHANGES_FRACTION: usize = 16;
+/// See [`ADOPT_CHANGES_FRACTION`].
+const ADOPT_MIN_CHANGES: usize = 32;
+
 /// The data a factor is built from (a snapshot goes to the builder thread).
 #[derive(Clone)]
 struct Rows<const K: usize, const L: usize> {
@@ -495,9 +503,11 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     /// are down-dated (rows matched by their ends and weights), and the right-hand sides are
     /// recomputed from this system's rows (one forward solve): a few paths and one pass over
     /// the factor instead of a whole build in the replay's step. The factor keeps `old`'s order
-    /// and renewal schedule, and its worker thread is taken over (in any case). False, this
-    /// system's rows and factor unchanged, when the rows differ in more than a sixteenth (and
-    /// 32) or a down-date fails; the caller then rebuilds.
+    /// and renewal schedule, and its worker thread is taken over (in any case). The
+    /// right-hand sides but the first lag the rows until the next [`Self::flush_rhs`] (a
+    /// replay's rebuild re-linearises them first). False, this system's rows and factor
+    /// unchanged, when more rows differ than [`ADOPT_CHANGES_FRACTION`] allows or a down-date
+    /// fails; the caller then rebuilds.
     pub fn adopt(&mut self, mut old: Box<Self>) -> bool {
         // (The replaced system's worker goes on serving this one; `old` is freed on it.)
         self.worker = std::mem::take(&mut old.worker);
@@ -518,10 +528,18 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
 
     /// [`Self::adopt`] once the two systems are known to be comparable.
     fn adopted(&mut self, old: &mut Self) -> bool {
-        // (ends, weights' bits, index), sorted: the rows in an order that matches equal rows.
+        // A row as compared: its ends and its weights' bits.
+        let key = |rows: &Rows<K, L>, e: usize| (rows.ends[e], rows.sqrt_w[e].map(f64::to_bits));
+        // The two systems hold the same rows in the same order up to the replay's first
+        // arrival (its checkpoint's graph, or the replay from the start's first difference):
+        // that prefix is matched in place, the rest sorted.
+        let common = (0..self.rows.ends.len().min(old.rows.ends.len()))
+            .find(|&e| key(&self.rows, e) != key(&old.rows, e))
+            .unwrap_or(self.rows.ends.len().min(old.rows.ends.len()));
+        // (key, index) of the rows after it, sorted: equal rows side by side.
         let keyed = |rows: &Rows<K, L>| {
-            let mut keys: Vec<((u32, u32), [u64; L], u32)> = (0..rows.ends.len())
-                .map(|e| (rows.ends[e], rows.sqrt_w[e].map(f64::to_bits), e as u32))
+            let mut keys: Vec<(_, u32)> = (common..rows.ends.len())
+                .map(|e| (key(rows, e), e as u32))
                 .collect();
             keys.sort_unstable();
             keys
@@ -531,17 +549,17 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         let (mut i, mut j) = (0, 0);
         while i < mine.len() || j < theirs.len() {
             match (mine.get(i), theirs.get(j)) {
-                (Some(a), Some(b)) if (a.0, a.1) == (b.0, b.1) => (i, j) = (i + 1, j + 1),
-                (Some(a), Some(b)) if (a.0, a.1) > (b.0, b.1) => {
-                    removed.push(b.2 as usize);
+                (Some(a), Some(b)) if a.0 == b.0 => (i, j) = (i + 1, j + 1),
+                (Some(a), Some(b)) if a.0 > b.0 => {
+                    removed.push(b.1 as usize);
                     j += 1;
                 }
                 (Some(a), _) => {
-                    added.push(a.2 as usize);
+                    added.push(a.1 as usize);
                     i += 1;
                 }
                 (None, Some(b)) => {
-                    removed.push(b.2 as usize);
+                    removed.push(b.1 as usize);
                     j += 1;
                 }
                 (None, None) => break,
@@ -553,7 +571,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
             .filter(|&v| priors(&self.prior, v) != priors(&old.prior, v))
             .collect();
         let changes = added.len() + removed.len() + moved_priors.len() + (n - old.len());
-        if changes > 32.max(self.rows.ends.len() / 16) {
+        if changes > ADOPT_MIN_CHANGES.max(self.rows.ends.len() / ADOPT_CHANGES_FRACTION) {
             return false;
         }
         let mut factor = std::mem::take(&mut old.factor);
@@ -581,10 +599,16 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
                 return false;
             }
         }
-        reset_rhs(&mut factor, &self.rows, 0);
+        // The headings' right-hand side now; the others lag until the next flush
+        // ([`Self::flush_rhs`]: a replay's rebuild re-linearises them first, and computing
+        // them here too was a second pass).
+        factor.reset_rhs_in(
+            0..1,
+            (0..self.rows.ends.len()).map(|e| (self.rows.entries(e), self.rows.rhs(e))),
+        );
         factor.take_work();
         self.factor = factor;
-        self.stale_rhs = None;
+        self.stale_rhs = (K > 1).then_some(1);
         // The replaced factor's schedule: its renewal in progress was dropped, and the next
         // step starts one if it is due.
         self.fill_after_renewal = old.fill_after_renewal;
@@ -756,6 +780,10 @@ mod tests {
         let order: Vec<u32> = (0..300).map(|v| old.factor.position_of(v)).collect();
         assert!(adopted.adopt(Box::new(old)));
         assert!(!adopted.deferred());
+        // The headings' column is exact now, the positions' after the flush a rebuild makes.
+        let headings = adopted.all(0);
+        adopted.flush_rhs();
+        assert_eq!(headings, adopted.all(0));
         for q in 0..3 {
             let (a, b) = (adopted.all(q), built.all(q));
             assert_eq!(a.len(), 304);
