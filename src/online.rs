@@ -94,13 +94,22 @@
 //! the replay's end instead of through every replayed step (M3500 + 1000 false edges, the
 //! newest pose read after every step: worst step, a replay, 120–168 ms before both, 39–49 ms
 //! after) — since 2026-12-06 derived from the replaced estimator's factors, which differ from
-//! them in a few rows (module `online/estimate.rs`). An evicted edge is re-tested like a
+//! them in a few rows (module `online/estimate.rs`). Since 2026-12-06 the rebuild is made
+//! **beside the live estimator** (module `rebuild`): the eviction's step hands the replay to a
+//! builder thread and goes on; every later arrival goes to the builder too, and the rebuilt
+//! estimator, its estimate's factors built by the builder, is swapped in after exactly 32 more
+//! arrivals (a count, so the run does not depend on the threads' timing) — until then the
+//! answers, and [`OnlineEstimator::rejected`], are those of the live estimator, which still
+//! holds the evicted edges ([`OnlineEstimator::evicting`] names them), and
+//! [`OnlineEstimator::settle`] swaps a rebuild in progress in at once (a stream's end). No
+//! step waits for the rebuild when the edges come at a sensor's rate; back to back, the swap's
+//! step waits for what the builder has left. An evicted edge is re-tested like a
 //! quarantined one, counting from its eviction, and later replays keep it in quarantine until
 //! then (re-tested at its arrival, it would pass
-//! as it first did and be accepted again). After a rebuild, [`Step::quarantined`] lists the
-//! evicted edges (and any other edge the rebuild quarantined), [`Step::readmitted`] the held
-//! edges the rebuild accepted, and the step's `kind` and `rescreened` describe the step before
-//! it (cycle ids may have changed). An earlier audit that re-tested every accepted cycle at
+//! as it first did and be accepted again). At the step that swaps a rebuild in,
+//! [`Step::quarantined`] lists the evicted edges (and any other edge the rebuild quarantined),
+//! [`Step::readmitted`] the held edges the rebuild accepted, and the step's `kind` and
+//! `rescreened` describe the live estimator's step (cycle ids may have changed). An earlier audit that re-tested every accepted cycle at
 //! each doubling of the cycle count evicted genuine loop closures of the clean CSAIL and
 //! ais2klinik files and was removed.
 //!
@@ -168,6 +177,7 @@ mod order;
 mod predict;
 mod quarantine;
 mod read;
+mod rebuild;
 mod renewal;
 mod reorder;
 mod replay;
@@ -322,6 +332,13 @@ pub struct OnlineEstimator {
     /// The node and edge counts the caller reserved room up to ([`Self::reserve`]): a
     /// rebuild's replacement gets the same room.
     room_for: (usize, usize),
+    /// An eviction's rebuild in progress beside this estimator ([`rebuild`]).
+    rebuilding: Option<rebuild::Rebuilding>,
+    /// The thread that replays rebuilds ([`rebuild`]).
+    replayer: renewal::Worker,
+    /// Whether an eviction's rebuild is made beside the live estimator and swapped in later
+    /// ([`rebuild`]; off only to test that it decides as a rebuild in the step).
+    rebuilds_beside: bool,
 }
 
 /// Cycles whose conditional sd of γ is below this feed the angle noise scale: their nearest
@@ -400,6 +417,9 @@ impl OnlineEstimator {
             doubtful_checkpoints: true,
             reorder_in_step_work: reorder::REORDER_IN_STEP_WORK,
             room_for: (0, 0),
+            rebuilding: None,
+            replayer: renewal::Worker::default(),
+            rebuilds_beside: true,
         })
     }
 
@@ -615,6 +635,7 @@ impl OnlineEstimator {
         self.retest_due(&mut step);
         self.examine_suspects(&mut step);
         self.warm_up(&mut step);
+        self.advance_rebuild(edge, &mut step);
         self.refresh_counters();
         self.checkpoint_if_due();
         Ok(step)

@@ -142,7 +142,10 @@ impl OnlineEstimator {
 
     /// Whether copies are taken at all (module docs).
     fn takes_checkpoints(&self) -> bool {
-        self.evictions_on() && !self.held.is_empty() && self.warm.is_some()
+        self.evictions_on()
+            && !self.held.is_empty()
+            && self.warm.is_some()
+            && self.rebuilding.is_none()
     }
 
     /// The arrival count of the latest checkpoint of a kind (0: none).
@@ -174,22 +177,11 @@ impl OnlineEstimator {
         });
     }
 
-    /// A copy of the latest checkpoint at or before arrival `first`, ready to replay from:
-    /// its estimate deferred and holding the checkpoint's graph ([`Op::Defer`]; the replay
-    /// builds the factors at its end).
-    pub(super) fn resume_before(&self, first: usize) -> Option<OnlineEstimator> {
-        let checkpoint = self.checkpoint_before(first)?;
-        let mut state = checkpoint.state.screening_copy();
-        state.model = GammaModel::from_cycles(&state.cycles, &state.sigma2, &state.delta);
-        state.defer_estimate();
-        Some(state)
-    }
-
     /// A copy of every part of the state but the estimate's factors, renewals in progress and
     /// the worker thread (a fresh estimator's), and the checkpoints; and but P_γ and the
     /// factor of P_UU, the largest parts (half of a copy's time at 12 000 cycles, and the
     /// factor grows faster than the graph): P_γ is rebuilt from the cycles when the copy is
-    /// resumed ([`Self::resume_before`], the same rows to the bit), and the determined cycles
+    /// resumed ([`Checkpoint::resumed`], the same rows to the bit), and the determined cycles
     /// go to the backlog of cycles the factor has yet to take in (module [`super::predict`]),
     /// which rebuilds it in a fill-reducing order at its first use.
     fn screening_copy(&self) -> Self {
@@ -244,6 +236,9 @@ impl OnlineEstimator {
             doubtful_checkpoints: self.doubtful_checkpoints,
             reorder_in_step_work: self.reorder_in_step_work,
             room_for: self.room_for,
+            rebuilding: None,
+            replayer: Default::default(),
+            rebuilds_beside: self.rebuilds_beside,
         }
     }
 
@@ -286,6 +281,16 @@ impl Checkpoint {
     pub(super) fn at(&self) -> usize {
         self.at
     }
+
+    /// A copy of this checkpoint's state, ready to replay from: its estimate deferred and
+    /// holding the checkpoint's graph ([`Op::Defer`]; the replay builds the factors at its
+    /// end), P_γ rebuilt from its cycles.
+    pub(super) fn resumed(&self) -> OnlineEstimator {
+        let mut state = self.state.screening_copy();
+        state.model = GammaModel::from_cycles(&state.cycles, &state.sigma2, &state.delta);
+        state.defer_estimate();
+        state
+    }
 }
 
 #[cfg(test)]
@@ -308,6 +313,8 @@ mod tests {
             let order = robot_order_indices(&edges);
             let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
             est.checkpoint_interval = 128;
+            // (A rebuild beside builds its own factors: module `online::rebuild`.)
+            est.rebuilds_beside = false;
             for &i in &order {
                 est.add_edge(edges[i]).unwrap();
             }
@@ -353,6 +360,10 @@ mod tests {
                 let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
                 est.checkpoint_interval = interval;
                 est.doubtful_checkpoints = doubtful;
+                // Rebuilt in the eviction's step: the copies' lineage is the same beside
+                // (module `online::rebuild`), but the swap comes later, and here the eviction's
+                // own step is checked.
+                est.rebuilds_beside = false;
                 for (i, edge) in edges.iter().enumerate() {
                     let before = est.counters().rebuilds_from_checkpoint;
                     let step = est.add_edge(*edge).unwrap();

@@ -27,8 +27,8 @@ pub struct OnlineConfig {
     /// cycles failing through them incriminate (the path-triggered examination, module docs),
     /// rebuilding the estimator by a replay without them. On by default: on INTEL with 100
     /// random false loop closures (3 seeds) it took the quarantined set's precision from 0.82
-    /// to 1.00. The step that evicts costs a replay of the whole stream so far (about the
-    /// stream's time: up to 0.27 s on M3500 with 1000 false edges); clean data never pays it.
+    /// to 1.00. The replay runs beside the live estimator and is swapped in 32 arrivals after
+    /// the eviction (module `online::rebuild`); clean data never pays for it.
     pub evict: bool,
     /// The caller reads the estimate after every step, as a robot does (on by default): the
     /// estimate's factor is then brought up to date inside each step, and while no cycle is

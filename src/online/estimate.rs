@@ -442,6 +442,13 @@ impl Estimate {
         self.pending.push(op);
     }
 
+    /// Whether the factors are still to be built: deferred ([`Op::Defer`], applied or
+    /// pending) or an [`Op::Rebuild`] pending — what [`Self::inherit`] would serve.
+    pub fn builds_later(&self) -> bool {
+        self.factors.deferred()
+            || (self.pending.iter()).any(|op| matches!(op, Op::Defer | Op::Rebuild))
+    }
+
     /// Renewals completed and steps that waited for a renewal's builder.
     pub fn renewals(&self) -> (usize, usize) {
         with_factor!(&self.factors, both => (both.renewals, both.waits))

@@ -52,11 +52,9 @@ use std::f64::consts::TAU;
 
 use smallvec::SmallVec;
 
-use super::estimate::Op;
 use super::quarantine::{Held, failed_by_far, retest_after, translation_by_far};
 use super::{
     ANGLE_SCALE_MAX_SD, ANGLE_TEST, NONE, OnlineError, OnlineEstimator, Step, TRANSLATION_TEST,
-    replay,
 };
 use crate::batch::RejectedEdge;
 use crate::closure;
@@ -219,14 +217,16 @@ impl OnlineEstimator {
             // `tests/quarantine.rs` a false edge then poisoned 74 genuine ones.
             return;
         }
-        if let Ok(fresh) = self.replayed(evicted, scales) {
+        if self.rebuilds_beside {
+            self.rebuild_beside(evicted, scales, start);
+        } else if let Ok(fresh) = self.replayed(evicted, scales) {
             self.take_over(fresh, evicted, start, step);
         }
     }
 
     /// Replace this estimator by `fresh`, its replay from arrival `start` with `evicted`
     /// quarantined; the loop closures whose state the replay changed are added to `step`.
-    fn take_over(
+    pub(super) fn take_over(
         &mut self,
         mut fresh: Self,
         evicted: &BTreeMap<usize, Held>,
@@ -256,8 +256,12 @@ impl OnlineEstimator {
         );
         // The caller's room again: the estimate's factors were built at the replay's end.
         fresh.keep_room(self.room_for);
-        // Its factors are built from these at its first read, when they match.
-        fresh.estimate.inherit(&mut self.estimate);
+        // A replay's factors, built at its first read, are derived from these when they
+        // match; a rebuild beside built its own (module `rebuild`).
+        if fresh.estimate.builds_later() {
+            fresh.estimate.inherit(&mut self.estimate);
+        }
+        fresh.replayer = std::mem::take(&mut self.replayer);
         // The replaced estimator (its factors, thousands of rows) is freed on the worker,
         // not in this step.
         let old = std::mem::replace(self, fresh);
@@ -274,7 +278,7 @@ impl OnlineEstimator {
     /// the family-wise setting (the default; at a per-cycle level the tests are too loose to
     /// evict on), and not within a replay.
     pub(super) fn evicts(&self) -> bool {
-        self.evictions_on() && !self.replaying
+        self.evictions_on() && !self.replaying && self.rebuilding.is_none()
     }
 
     /// The settings under which accepted loop closures are evicted: quarantine and evictions
@@ -607,66 +611,34 @@ impl OnlineEstimator {
     /// loop closures put in quarantine as they arrive: a copy of the latest checkpoint before
     /// the first of them, or a fresh estimator with `warm` as its scales until it has
     /// estimated its own ([`Self::examine_suspects`]), given the arrivals since
-    /// ([`super::checkpoint`]). It takes over the checkpoints it starts from; the later ones
-    /// are dropped if the replay succeeds, and left as they were if it fails.
+    /// ([`super::checkpoint`], [`Self::replay_job`]). It takes over the checkpoints it starts
+    /// from; the later ones are dropped if the replay succeeds, and left as they were if it
+    /// fails.
     pub(super) fn replayed(
         &mut self,
         evicted: &BTreeMap<usize, Held>,
         warm: (f64, f64),
     ) -> Result<Self, OnlineError> {
-        let first = evicted.keys().next().copied().unwrap_or(self.arrivals);
-        let mut fresh = match self.resume_before(first) {
-            Some(state) => state,
-            None => {
-                let mut fresh = Self::new(self.config)?;
-                fresh.warm = Some(warm);
-                fresh.checkpoint_interval = self.checkpoint_interval;
-                fresh.doubtful_checkpoints = self.doubtful_checkpoints;
-                fresh.estimate.push(Op::Defer);
-                fresh
+        let (job, later) = self.replay_job(evicted, warm);
+        match job.run() {
+            Ok(mut fresh) => {
+                fresh.replay_done();
+                self.worker.retire("so2lin-reorder", later);
+                Ok(fresh)
             }
-        };
-        // The caller's room, before the replay fills the arrays (no copy to grow them).
-        fresh.keep_room(self.room_for);
-        let start = fresh.arrivals;
-        let later =
-            (self.checkpoints).split_off(self.checkpoints.partition_point(|c| c.at() <= start));
-        fresh.checkpoints = std::mem::take(&mut self.checkpoints);
-        // Each arrival since, and for those kept in quarantine through the replay (evicted
-        // now or before) the cycle count of their re-test.
-        let mut arrivals: BTreeMap<usize, (Edge, Option<(RejectedEdge, usize)>)> = BTreeMap::new();
-        for (e, edge) in self.graph.edges().iter().enumerate() {
-            let i = self.input_of[e] as usize;
-            if i >= start {
-                arrivals.insert(i, (*edge, None));
+            Err((error, mut checkpoints)) => {
+                checkpoints.extend(later);
+                self.checkpoints = checkpoints;
+                Err(error)
             }
         }
-        for (&i, h) in (self.held.range(start..)).chain(evicted.range(start..)) {
-            arrivals.insert(i, (h.edge, h.evicted.then_some((h.rejected, h.due))));
-        }
-        fresh.replaying = true;
-        fresh.reuse_paths = self.reuse_paths;
-        fresh.hints = (self.reuse_paths).then(|| replay::Hints::new(self.paths.clone()));
-        // Nobody reads the estimate within the replay: its factors are built once at its end
-        // instead of being kept through every step (deferred from the start above, or by
-        // the checkpoint's copy).
-        if let Err(error) = fresh.replay_arrivals(arrivals) {
-            fresh.checkpoints.retain(|c| c.at() <= start);
-            self.checkpoints = std::mem::take(&mut fresh.checkpoints);
-            self.checkpoints.extend(later);
-            return Err(error);
-        }
-        fresh.estimate.push(Op::Rebuild);
-        fresh.replaying = false;
-        fresh.hints = None;
-        Ok(fresh)
     }
 
     /// Give `arrivals` (by input index) to this estimator within a replay: an edge with a
     /// re-test date is kept in quarantine until then, the others arrive as usual.
-    fn replay_arrivals(
+    pub(super) fn replay_arrivals(
         &mut self,
-        arrivals: BTreeMap<usize, (Edge, Option<(RejectedEdge, usize)>)>,
+        arrivals: super::rebuild::Arrivals,
     ) -> Result<(), OnlineError> {
         for (edge, kept) in arrivals.into_values() {
             match kept {

@@ -38,8 +38,20 @@ impl OnlineEstimator {
         self.arrivals
     }
 
+    /// An eviction in progress (module `online::rebuild`): the arrival count after which its
+    /// rebuilt estimator is swapped in, and the input indices of the accepted loop closures
+    /// it evicts, ascending — still in the graph and in every answer until then (or until
+    /// [`Self::settle`]). None when no rebuild is in progress.
+    pub fn evicting(&self) -> Option<(usize, Vec<usize>)> {
+        let (at, mut evicted) = self.rebuilding.as_ref()?.evicting();
+        // (Not those of its place already held: they stay held through the rebuild.)
+        evicted.retain(|i| !self.held.contains_key(i));
+        Some((at, evicted))
+    }
+
     /// The loop closures in quarantine now, by input index: each with the test it failed, its
-    /// statistic and the threshold it exceeded (at its last test).
+    /// statistic and the threshold it exceeded (at its last test). An eviction in progress
+    /// ([`Self::evicting`]) adds its edges when its rebuild is swapped in.
     pub fn rejected(&self) -> Vec<RejectedEdge> {
         self.held.values().map(|h| h.rejected).collect()
     }

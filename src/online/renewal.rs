@@ -33,12 +33,35 @@ pub(crate) struct Worker {
     tx: Option<std::sync::mpsc::Sender<Job>>,
     /// The worker thread's kernel id (Linux; 0 when unknown), to keep it off the caller's core.
     tid: std::sync::Arc<std::sync::atomic::AtomicI32>,
+    /// Tests: start no thread, as when the system refuses one.
+    #[cfg(test)]
+    refuse: bool,
 }
 
 impl Worker {
     /// Run `job` on the worker thread (started on first use as `name`). False when no thread
     /// can be started or it is gone: the caller goes on without.
     pub fn run(&mut self, name: &str, job: Job) -> bool {
+        if !self.ready(name) {
+            return false;
+        }
+        avoid_callers_core(self.tid.load(std::sync::atomic::Ordering::Acquire));
+        match &self.tx {
+            Some(tx) if tx.send(job).is_ok() => true,
+            _ => {
+                self.tx = None;
+                false
+            }
+        }
+    }
+
+    /// Whether the worker thread is there, started as `name` if it was not: false when no
+    /// thread can be started.
+    pub fn ready(&mut self, name: &str) -> bool {
+        #[cfg(test)]
+        if self.refuse {
+            return false;
+        }
         if self.tx.is_none() {
             let (tx, rx) = std::sync::mpsc::channel::<Job>();
             let tid = std::sync::Arc::clone(&self.tid);
@@ -57,13 +80,15 @@ impl Worker {
             }
             self.tx = Some(tx);
         }
-        avoid_callers_core(self.tid.load(std::sync::atomic::Ordering::Acquire));
-        match &self.tx {
-            Some(tx) if tx.send(job).is_ok() => true,
-            _ => {
-                self.tx = None;
-                false
-            }
+        true
+    }
+
+    /// A worker that never starts a thread (tests: the path of a system that refuses one).
+    #[cfg(test)]
+    pub fn refusing() -> Self {
+        Self {
+            refuse: true,
+            ..Self::default()
         }
     }
 

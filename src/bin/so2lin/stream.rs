@@ -260,6 +260,9 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         }
     }
     let stream_s = start.elapsed().as_secs_f64();
+    // An eviction's rebuild still in progress beside the estimator is swapped in: the summary
+    // gives the decisions on every arrival (after the log, which records steps only).
+    est.settle();
     let t = Instant::now();
     let result = est.finish().map_err(|e| e.to_string())?;
     let finish_s = t.elapsed().as_secs_f64();

@@ -1,0 +1,436 @@
+//! An eviction's rebuild beside the live estimator: the replay runs on another thread while the
+//! live estimator takes the next arrivals, and is swapped in at an arrival count fixed when the
+//! eviction is decided.
+//!
+//! An eviction at arrival `k` rebuilds the estimator by replaying the arrivals since a
+//! checkpoint at `c ≤ k` without the evicted loop closures (module [`super::evict`]): a copy of
+//! the checkpoint, P_γ rebuilt from its cycles, the factor of P_UU rebuilt at its first use,
+//! `k − c` arrivals screened again, the estimate's factors built at the end — 6–12 ms on
+//! M3500 + 1 000 false loop closures, which the step that carried it out waited for. Instead, the
+//! eviction's step hands that work to a builder thread (the renewals' mechanism,
+//! [`super::renewal::Beside`]) and goes on with the live estimator; every later arrival the
+//! live estimator takes is also sent to the builder, which, once it has replayed the arrivals
+//! to `k` and built the estimate's factors (in a fresh order), takes it as a live step would,
+//! its estimate brought up to date. After arrival
+//!
+//! ```text
+//! k' = k + REBUILD_LAG        (32)
+//! ```
+//!
+//! the step collects the rebuilt estimator — applying itself the arrivals the builder has not
+//! reached, waiting for the builder if it is still replaying — and swaps it in: from then on
+//! the answers are those of an estimator that quarantined the evicted edges at their arrivals
+//! and took every arrival to `k'`, and that step's [`Step::quarantined`] and
+//! [`Step::readmitted`] say what changed. Counted in arrivals, not time, so the run does not
+//! depend on the threads' timing (a log replays to the bit; without a thread the collecting
+//! step runs the replay itself, with the same arrivals in the same order: the same bits).
+//!
+//! Between `k` and `k'` the live estimator still holds the evicted edges — its answers are
+//! exact for the edges it holds, which [`OnlineEstimator::rejected`] and
+//! [`OnlineEstimator::evicting`] tell apart — examines no other suspect (the rebuilt estimator
+//! counts their failures and examines them once swapped in) and takes no checkpoint (the
+//! replay takes its own). [`OnlineEstimator::settle`] swaps a rebuild in progress in at once,
+//! for a caller that wants the decisions on every arrival so far (a stream's end).
+//!
+//! **Cost.** When edges come at a sensor's rate the builder is done long before `k'`, and the
+//! swap's step only takes the rebuilt estimator over. M3500 + 1 000 false loop closures
+//! (`so2lin stream FILE --json --rate 1000`, robot order, the newest pose read after every
+//! step; random seeds 1–12 and clustered 1–6, one run each, alternating with the build that
+//! rebuilt in the step): on the fourteen that evict, worst step 2.8–13.8 ms (median 6.6) → 1.1–3.1 ms (2.2) (what is
+//! left are other steps: the warm-up replay, long loop closures; the figures in
+//! `benches/MEASUREMENTS.md`, thirtieth session). Back to back the builder cannot
+//! get ahead (it replays as fast as the live estimator steps, and began behind), so the swap's
+//! step waits for what it has left: about the rebuild's cost, with the whole build of the
+//! estimate's factors where a rebuild in the step derived them from the live ones
+//! (`Laplacian::adopt`): worst step 1.5–9.5 ms (median 6.2) → 1.6–12.6 ms (7.8). The lag is short because the live
+//! estimator's answers are a false loop closure's for that long: 32 arrivals, 3 s of a robot's
+//! odometry at 10 Hz; and it need not be longer, since back to back no lag is enough and at a
+//! sensor's rate 32 ms (1 kHz) covers M3500's rebuilds. The decisions are as good: on every
+//! one of those 18 streams the same number of false edges kept (3 of 18 000 in all) and of
+//! genuine loop closures held (1), back to back and at 1 kHz. Memory: the builder's estimator lives beside the live one until
+//! the swap (peak RSS up to 10 MB more on M3500 + 1 000).
+
+use std::collections::BTreeMap;
+
+use super::checkpoint::Checkpoint;
+use super::estimate::Op;
+use super::quarantine::Held;
+use super::renewal::Beside;
+use super::{OnlineConfig, OnlineError, OnlineEstimator, Step, replay};
+use crate::batch::RejectedEdge;
+use crate::graph::Edge;
+
+/// Arrivals between an eviction and the swap of its rebuilt estimator (module docs: why 32).
+pub(super) const REBUILD_LAG: usize = 32;
+
+/// Each arrival of a replay (by input index), and for the loop closures kept in quarantine
+/// through it (evicted now or before) their rejection and the cycle count of their re-test.
+pub(super) type Arrivals = BTreeMap<usize, (Edge, Option<(RejectedEdge, usize)>)>;
+
+/// What a replay needs of the estimator it replaces, taken at the eviction: it runs on any
+/// thread ([`ReplayJob::run`]).
+pub(super) struct ReplayJob {
+    config: OnlineConfig,
+    /// The scales until the replay has estimated its own (a replay from the start).
+    warm: (f64, f64),
+    checkpoint_interval: usize,
+    doubtful_checkpoints: bool,
+    rebuilds_beside: bool,
+    /// The checkpoints at or before the replay's start (oldest first): it resumes the latest,
+    /// and keeps them all.
+    checkpoints: Vec<Checkpoint>,
+    room: (usize, usize),
+    arrivals: Arrivals,
+    reuse_paths: bool,
+    hints: Option<replay::Hints>,
+}
+
+impl ReplayJob {
+    /// The replayed estimator, still replaying (later arrivals may be given to it with
+    /// [`OnlineEstimator::add_edge_inner`]; [`OnlineEstimator::replay_done`] ends the replay).
+    /// On failure, the error and the checkpoints it was given.
+    pub(super) fn run(self) -> Result<OnlineEstimator, (OnlineError, Vec<Checkpoint>)> {
+        let mut fresh = match self.checkpoints.last() {
+            Some(checkpoint) => checkpoint.resumed(),
+            None => match OnlineEstimator::new(self.config) {
+                Ok(mut fresh) => {
+                    fresh.warm = Some(self.warm);
+                    fresh.checkpoint_interval = self.checkpoint_interval;
+                    fresh.doubtful_checkpoints = self.doubtful_checkpoints;
+                    fresh.rebuilds_beside = self.rebuilds_beside;
+                    fresh.estimate.push(Op::Defer);
+                    fresh
+                }
+                Err(e) => return Err((e, self.checkpoints)),
+            },
+        };
+        // The caller's room, before the replay fills the arrays (no copy to grow them).
+        fresh.keep_room(self.room);
+        let start = fresh.arrivals;
+        fresh.checkpoints = self.checkpoints;
+        fresh.replaying = true;
+        fresh.reuse_paths = self.reuse_paths;
+        fresh.hints = self.hints;
+        // Nobody reads the estimate within the replay: its factors are built once at its end
+        // instead of being kept through every step (deferred from the start above, or by
+        // the checkpoint's copy).
+        match fresh.replay_arrivals(self.arrivals) {
+            Ok(()) => Ok(fresh),
+            Err(error) => {
+                fresh.checkpoints.retain(|c| c.at() <= start);
+                Err((error, std::mem::take(&mut fresh.checkpoints)))
+            }
+        }
+    }
+}
+
+/// A rebuild in progress beside the live estimator (module docs).
+pub(super) struct Rebuilding {
+    build: Build,
+    /// The loop closures it evicts (by input index).
+    evicted: BTreeMap<usize, Held>,
+    /// The arrival count its replay starts from.
+    start: usize,
+    /// It is swapped in after this many arrivals.
+    at: usize,
+    /// Arrivals given to it so far.
+    given: usize,
+}
+
+/// Who replays.
+enum Build {
+    /// A builder thread.
+    Beside(Beside<Box<OnlineEstimator>, Box<OnlineEstimator>, Edge>),
+    /// The collecting step (no thread could be started): the job and the later arrivals.
+    Here(Box<ReplayJob>, Vec<Edge>),
+}
+
+impl Rebuilding {
+    /// The arrival count of the swap, and the evicted loop closures' input indices.
+    pub(super) fn evicting(&self) -> (usize, Vec<usize>) {
+        (self.at, self.evicted.keys().copied().collect())
+    }
+}
+
+impl OnlineEstimator {
+    /// The replay of every arrival so far with `evicted` quarantined from their arrival and
+    /// `warm` as its scales until it has estimated its own: it starts from a copy of the
+    /// latest checkpoint before the first of them (or from nothing), and takes over the
+    /// checkpoints at or before it; the later ones are returned (the caller drops them once
+    /// the replay succeeds).
+    pub(super) fn replay_job(
+        &mut self,
+        evicted: &BTreeMap<usize, Held>,
+        warm: (f64, f64),
+    ) -> (ReplayJob, Vec<Checkpoint>) {
+        let first = evicted.keys().next().copied().unwrap_or(self.arrivals);
+        let start = self.replay_start(first);
+        let later =
+            (self.checkpoints).split_off(self.checkpoints.partition_point(|c| c.at() <= start));
+        let mut arrivals: Arrivals = BTreeMap::new();
+        for (e, edge) in self.graph.edges().iter().enumerate() {
+            let i = self.input_of[e] as usize;
+            if i >= start {
+                arrivals.insert(i, (*edge, None));
+            }
+        }
+        for (&i, h) in (self.held.range(start..)).chain(evicted.range(start..)) {
+            arrivals.insert(i, (h.edge, h.evicted.then_some((h.rejected, h.due))));
+        }
+        let job = ReplayJob {
+            config: self.config,
+            warm,
+            checkpoint_interval: self.checkpoint_interval,
+            doubtful_checkpoints: self.doubtful_checkpoints,
+            rebuilds_beside: self.rebuilds_beside,
+            checkpoints: std::mem::take(&mut self.checkpoints),
+            room: self.room_for,
+            arrivals,
+            reuse_paths: self.reuse_paths,
+            hints: (self.reuse_paths).then(|| replay::Hints::new(self.paths.clone())),
+        };
+        (job, later)
+    }
+
+    /// The end of a replay: the estimate's factors are built at the next read.
+    pub(super) fn replay_done(&mut self) {
+        self.estimate.push(Op::Rebuild);
+        self.replaying = false;
+        self.hints = None;
+    }
+
+    /// A rebuild's estimate, after the replay of the arrivals before the eviction: its
+    /// factors built now (on the builder, in a fresh order), with the caller's room, and kept
+    /// up to date through the later arrivals ([`Self::replay_later`]), so that the swap finds
+    /// them ready.
+    fn build_estimate(&mut self) {
+        self.estimate.push(Op::Rebuild);
+        self.estimate.sync(&self.graph);
+        self.keep_room(self.room_for);
+    }
+
+    /// A later arrival given to a rebuild (module docs), its estimate brought up to date as a
+    /// live step's is by the read after it. None if it fails (the rebuild is dropped).
+    fn replay_later(&mut self, edge: Edge) -> Option<()> {
+        self.add_edge_inner(edge).ok()?;
+        self.estimate.sync(&self.graph);
+        Some(())
+    }
+
+    /// Start the rebuild that evicts `evicted` beside this estimator (module docs), replaying
+    /// from arrival `start` with `warm` scales.
+    pub(super) fn rebuild_beside(
+        &mut self,
+        evicted: &BTreeMap<usize, Held>,
+        warm: (f64, f64),
+        start: usize,
+    ) {
+        let at = self.arrivals + REBUILD_LAG;
+        let here = !self.replayer.ready("so2lin-replay");
+        let (job, later) = self.replay_job(evicted, warm);
+        // The checkpoints after the replay's start belong to the lineage it replaces.
+        self.worker.retire("so2lin-reorder", later);
+        let build = if here {
+            Build::Here(Box::new(job), Vec::new())
+        } else {
+            fn apply(fresh: &mut Box<OnlineEstimator>, edge: Edge) -> Option<()> {
+                fresh.replay_later(edge)
+            }
+            fn done(mut fresh: Box<OnlineEstimator>) -> Box<OnlineEstimator> {
+                fresh.replaying = false;
+                fresh.hints = None;
+                fresh
+            }
+            let build = move || {
+                let mut fresh = job.run().ok()?;
+                fresh.build_estimate();
+                Some(Box::new(fresh))
+            };
+            match Beside::start(&mut self.replayer, "so2lin-replay", build, apply, done) {
+                Some(beside) => Build::Beside(beside),
+                // (The thread was there a moment ago: the eviction is not carried out, and its
+                // edges' failures keep counting.)
+                None => return,
+            }
+        };
+        self.rebuilding = Some(Rebuilding {
+            build,
+            evicted: evicted.clone(),
+            start,
+            at,
+            given: self.arrivals,
+        });
+    }
+
+    /// After each arrival: a rebuild in progress is given the arrival, and swapped in when its
+    /// arrival count is reached (module docs); the loop closures whose state it changed are
+    /// added to `step`.
+    pub(super) fn advance_rebuild(&mut self, edge: Edge, step: &mut Step) {
+        let Some(r) = &mut self.rebuilding else {
+            return;
+        };
+        if r.given < self.arrivals {
+            r.given = self.arrivals;
+            let sent = match &mut r.build {
+                Build::Beside(beside) => beside.send(edge),
+                Build::Here(_, later) => {
+                    later.push(edge);
+                    true
+                }
+            };
+            if !sent {
+                // The builder failed: the live estimator goes on, the edges stay.
+                self.rebuilding = None;
+                return;
+            }
+        }
+        if self.arrivals >= r.at {
+            self.swap_rebuilt(step);
+        }
+    }
+
+    /// Swap the rebuild in progress in now (module `online::rebuild`), if there is one: true
+    /// when one was. Between steps, for a caller that wants the decisions on every arrival so
+    /// far (a stream's end): a rebuild otherwise waits for its arrival count
+    /// ([`Self::evicting`]). The estimator is then the rebuild's — the evicted loop closures in
+    /// quarantine from their arrival, every arrival so far taken again — waiting for its
+    /// builder if need be. A recorded log does not hold this call: call it after
+    /// [`Recorder::finish`](crate::log::Recorder::finish), or a replay of the log diverges
+    /// from the call on.
+    pub fn settle(&mut self) -> bool {
+        if self.rebuilding.is_none() {
+            return false;
+        }
+        let mut step = Step {
+            edge: self.arrivals,
+            kind: super::StepKind::Quarantined,
+            rescreened: Vec::new(),
+            quarantined: Vec::new(),
+            readmitted: Vec::new(),
+        };
+        self.swap_rebuilt(&mut step);
+        self.refresh_counters();
+        true
+    }
+
+    /// Collect the rebuild in progress and take it over (the live estimator goes on if it
+    /// failed).
+    fn swap_rebuilt(&mut self, step: &mut Step) {
+        let Some(r) = self.rebuilding.take() else {
+            return;
+        };
+        let fresh = match r.build {
+            Build::Beside(beside) => beside.collect(&mut self.cond_waits),
+            // Its work is not counted here, as a builder's is not (module `crate::work`).
+            Build::Here(job, later) => crate::work::paused(|| {
+                let mut fresh = job.run().ok()?;
+                fresh.build_estimate();
+                for edge in later {
+                    fresh.replay_later(edge)?;
+                }
+                fresh.replaying = false;
+                fresh.hints = None;
+                Some(Box::new(fresh))
+            }),
+        };
+        if let Some(fresh) = fresh {
+            self.take_over(*fresh, &r.evicted, r.start, step);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::estimate::OrientationEstimator;
+    use crate::online::renewal::Worker;
+    use crate::online::replay::tests::wide_outlier_world;
+    use crate::online::robot_order;
+
+    /// The orientations equal the batch estimate of the graph the estimator holds, at its
+    /// wraps, to 1e-9.
+    fn assert_exact(est: &mut OnlineEstimator, what: &str) {
+        let want = OrientationEstimator::new(est.graph())
+            .unwrap()
+            .orientations(&est.wraps().unwrap());
+        for (a, b) in est.orientations().unwrap().iter().zip(&want) {
+            assert!((a - b).abs() < 1e-9, "{what}: {a} vs {b}");
+        }
+    }
+
+    /// Evicting worlds (40 random false loop closures, declared noise 16× too wide) streamed
+    /// with rebuilds beside: no eviction's step rebuilds; each rebuild is swapped in exactly
+    /// [`REBUILD_LAG`] arrivals after the step that decided it; the answers are exact before
+    /// the swap (the live estimator's, holding the evicted edges) and after it (the rebuilt
+    /// one's, whose factors its builder made), and after a [`OnlineEstimator::settle`] at the
+    /// end. And the same streams with the replays run by the collecting steps (no thread)
+    /// decide and answer the same, to the bit, at every step: the swap's count, not the
+    /// threads' timing, fixes the run. Fails if the swap comes at another step, or if the
+    /// builder misses an arrival.
+    #[test]
+    fn a_rebuild_beside_swaps_in_at_its_count_the_same_on_any_thread() {
+        let mut swaps = 0;
+        for seed in 0..4u64 {
+            let (edges, _) = wide_outlier_world(seed, false);
+            let run = |threads: bool| {
+                let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+                if !threads {
+                    est.replayer = Worker::refusing();
+                }
+                let (mut newest, mut swapped) = (Vec::new(), 0);
+                let mut due: Option<usize> = None;
+                let mut evicting = Vec::new();
+                for (i, edge) in robot_order(&edges).into_iter().enumerate() {
+                    let rebuilds = est.counters().rebuilds;
+                    est.add_edge(edge).unwrap();
+                    let (_, pose) = est.newest().unwrap().unwrap();
+                    newest.push([pose.x.to_bits(), pose.y.to_bits(), pose.theta.to_bits()]);
+                    let rebuilt = est.counters().rebuilds > rebuilds;
+                    let held = est.rejected().len();
+                    assert_eq!(est.graph().edge_count() + held, i + 1, "seed {seed} {i}");
+                    match due {
+                        Some(at) => {
+                            assert_eq!(rebuilt, i + 1 == at, "seed {seed} arrival {i}");
+                            if rebuilt {
+                                due = None;
+                                swapped += 1;
+                                let held = est.rejected();
+                                for e in std::mem::take(&mut evicting) {
+                                    assert!(held.iter().any(|r| r.edge == e), "seed {seed} {e}");
+                                }
+                                assert_exact(&mut est, &format!("seed {seed} swap {i}"));
+                            }
+                        }
+                        None => {
+                            if let Some((at, evicted)) = est.evicting() {
+                                assert!(!rebuilt, "seed {seed} arrival {i}: rebuilt in the step");
+                                assert_eq!(at, i + 1 + REBUILD_LAG, "seed {seed}");
+                                // Still in the graph, and in every answer, until the swap.
+                                for &e in &evicted {
+                                    assert!(est.rejected().iter().all(|r| r.edge != e));
+                                }
+                                evicting = evicted;
+                                due = Some(at);
+                                assert_exact(&mut est, &format!("seed {seed} eviction {i}"));
+                            }
+                        }
+                    }
+                }
+                let pending = est.rebuilding.is_some();
+                assert_eq!(est.settle(), pending, "seed {seed}");
+                assert_exact(&mut est, &format!("seed {seed} settled"));
+                let rejected: Vec<(usize, u64)> = (est.rejected().iter())
+                    .map(|r| (r.edge, r.statistic.to_bits()))
+                    .collect();
+                (newest, rejected, est.gamma(), swapped)
+            };
+            let (beside, here) = (run(true), run(false));
+            assert_eq!(beside.0, here.0, "seed {seed}: newest poses");
+            assert_eq!(beside.1, here.1, "seed {seed}: quarantined");
+            assert_eq!(beside.2, here.2, "seed {seed}: γ");
+            assert_eq!(beside.3, here.3, "seed {seed}");
+            swaps += beside.3;
+        }
+        assert!(swaps >= 4, "{swaps} rebuilds swapped in: too few to test");
+    }
+}
