@@ -97,8 +97,9 @@
 //! them in a few rows (module `online/estimate.rs`). Since 2026-12-06 the rebuild is made
 //! **beside the live estimator** (module `rebuild`): the eviction's step hands the replay to a
 //! builder thread and goes on; every later arrival goes to the builder too, and the rebuilt
-//! estimator, its estimate's factors built by the builder, is swapped in after exactly 32 more
-//! arrivals (a count, so the run does not depend on the threads' timing) — until then the
+//! estimator, its estimate's factors built by the builder, is swapped in 32 arrivals later (or
+//! an eighth of the arrivals it replays, if more: a count, so the run does not depend on the
+//! threads' timing) — until then the
 //! answers, and [`OnlineEstimator::rejected`], are those of the live estimator, which still
 //! holds the evicted edges ([`OnlineEstimator::evicting`] names them), and
 //! [`OnlineEstimator::settle`] swaps a rebuild in progress in at once (a stream's end). No

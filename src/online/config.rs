@@ -27,8 +27,9 @@ pub struct OnlineConfig {
     /// cycles failing through them incriminate (the path-triggered examination, module docs),
     /// rebuilding the estimator by a replay without them. On by default: on INTEL with 100
     /// random false loop closures (3 seeds) it took the quarantined set's precision from 0.82
-    /// to 1.00. The replay runs beside the live estimator and is swapped in 32 arrivals after
-    /// the eviction (module `online::rebuild`); clean data never pays for it.
+    /// to 1.00. The replay runs beside the live estimator and is swapped in 32 arrivals (or an
+    /// eighth of those it replays) after the eviction (module `online::rebuild`); clean data
+    /// never pays for it.
     pub evict: bool,
     /// The caller reads the estimate after every step, as a robot does (on by default): the
     /// estimate's factor is then brought up to date inside each step, and while no cycle is

@@ -16,7 +16,7 @@
 //! the swap, as the live estimator's changes do). After arrival
 //!
 //! ```text
-//! k' = k + REBUILD_LAG        (32)
+//! k' = k + max(REBUILD_LAG, (k − c) / REBUILD_LAG_FRACTION)        (32, 8)
 //! ```
 //!
 //! the step collects the rebuilt estimator — applying itself the arrivals the builder has not
@@ -34,23 +34,29 @@
 //! replay takes its own). [`OnlineEstimator::settle`] swaps a rebuild in progress in at once,
 //! for a caller that wants the decisions on every arrival so far (a stream's end).
 //!
-//! **Cost.** When edges come at a sensor's rate the builder is done long before `k'`, and the
-//! swap's step only takes the rebuilt estimator over. M3500 + 1 000 false loop closures
-//! (`so2lin stream FILE --json --rate 1000`, robot order, the newest pose read after every
-//! step; random seeds 1–12 and clustered 1–6, one run each, alternating with the build that
-//! rebuilt in the step): on the fourteen that evict, worst step 2.8–13.8 ms (median 6.6) → 1.1–3.1 ms (2.2) (what is
-//! left are other steps: the warm-up replay, long loop closures; the figures in
-//! `benches/MEASUREMENTS.md`, thirtieth session). Back to back the builder cannot
-//! get ahead (it replays as fast as the live estimator steps, and began behind), so the swap's
-//! step waits for what it has left: about the rebuild's cost, with the whole build of the
-//! estimate's factors where a rebuild in the step derived them from the live ones
-//! (`Laplacian::adopt`): worst step 1.5–9.5 ms (median 6.2) → 1.6–12.6 ms (7.8). The lag is short because the live
-//! estimator's answers are a false loop closure's for that long: 32 arrivals, 3 s of a robot's
-//! odometry at 10 Hz; and it need not be longer, since back to back no lag is enough and at a
-//! sensor's rate 32 ms (1 kHz) covers M3500's rebuilds. The decisions are as good: on every
-//! one of those 18 streams the same number of false edges kept (3 of 18 000 in all) and of
-//! genuine loop closures held (1), back to back and at 1 kHz. Memory: the builder's estimator lives beside the live one until
-//! the swap (peak RSS up to 10 MB more on M3500 + 1 000).
+//! **The lag.** The live estimator's answers hold a false loop closure until the swap, so the
+//! lag is short: 32 arrivals (3 s of a robot's odometry at 10 Hz), enough for M3500's
+//! rebuilds, which replay a few hundred arrivals in a few milliseconds. A replay's cost grows
+//! with its arrivals (up to 1.2 s for 8 953 of them in a 20 000-pose world with 200 false loop
+//! closures), and the lag with it: the builder has the live steps' time of one arrival for
+//! every eight it replays. Back to back no lag is enough: the builder replays about as fast as
+//! the live estimator steps, and it began behind.
+//!
+//! **Cost** (`so2lin stream FILE --json`, robot order, the newest pose read after every step;
+//! one run each, alternating with the build that rebuilt in the step; `benches/MEASUREMENTS.md`,
+//! thirtieth session). At a sensor's rate the builder is done before `k'`, and the swap's step
+//! only takes the rebuilt estimator over: M3500 + 1 000 false loop closures at `--rate 1000`
+//! (random seeds 1–12 and clustered 1–6, lag 32), the fourteen streams that evict went from a
+//! worst step of 2.8–13.8 ms (median 6.6) to 1.1–3.1 ms (2.2), what is left being other steps
+//! (the warm-up replay, long loop closures); the 20 000-pose world at `--rate 200`, 957 →
+//! 10.9 ms. Back to back the swap's step waits for what the builder has left: about the
+//! rebuild's cost, with the whole build of the estimate's factors where a rebuild in the step
+//! derived them from the live ones (`Laplacian::adopt`): M3500 + 1 000's worst step 1.5–9.5 ms
+//! (median 6.2) → 1.6–12.6 ms (7.8). The decisions are as good: on each of those 18 streams the
+//! same number of false edges kept (3 of 18 000 in all) and of genuine loop closures held (1),
+//! back to back and at 1 kHz; on the world, 1 of 200 kept either way. Memory: the builder's
+//! estimator lives beside the live one until the swap (peak RSS up to 10 MB more on M3500 +
+//! 1 000, 391 → 534 MB on the world).
 
 use std::collections::BTreeMap;
 
@@ -62,8 +68,17 @@ use super::{OnlineConfig, OnlineError, OnlineEstimator, Step, replay};
 use crate::batch::RejectedEdge;
 use crate::graph::Edge;
 
-/// Arrivals between an eviction and the swap of its rebuilt estimator (module docs: why 32).
+/// Arrivals between an eviction and the swap of its rebuilt estimator, at least (module docs).
 pub(super) const REBUILD_LAG: usize = 32;
+
+/// And at least the replay's arrivals over this (module docs).
+pub(super) const REBUILD_LAG_FRACTION: usize = 8;
+
+/// The arrivals between an eviction and the swap of its rebuild, which replays `replayed`
+/// arrivals (module docs).
+pub(super) fn rebuild_lag(replayed: usize) -> usize {
+    REBUILD_LAG.max(replayed / REBUILD_LAG_FRACTION)
+}
 
 /// Each arrival of a replay (by input index), and for the loop closures kept in quarantine
 /// through it (evicted now or before) their rejection and the cycle count of their re-test.
@@ -235,7 +250,7 @@ impl OnlineEstimator {
         warm: (f64, f64),
         start: usize,
     ) {
-        let at = self.arrivals + REBUILD_LAG;
+        let at = self.arrivals + rebuild_lag(self.arrivals - start);
         let here = !self.replayer.ready("so2lin-replay");
         let (job, later) = self.replay_job(evicted, warm);
         // The checkpoints after the replay's start belong to the lineage it replaces.
@@ -419,7 +434,7 @@ mod tests {
                         None => {
                             if let Some((at, evicted)) = est.evicting() {
                                 assert!(!rebuilt, "seed {seed} arrival {i}: rebuilt in the step");
-                                assert_eq!(at, i + 1 + REBUILD_LAG, "seed {seed}");
+                                assert!(at >= i + 1 + REBUILD_LAG, "seed {seed}");
                                 // Still in the graph, and in every answer, until the swap.
                                 for &e in &evicted {
                                     assert!(est.rejected().iter().all(|r| r.edge != e));
