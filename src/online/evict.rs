@@ -189,18 +189,28 @@ impl OnlineEstimator {
         }
         let scales = (self.translation_scale(), self.angle_scale());
         let none = BTreeMap::new();
+        if self.rebuilds_beside {
+            self.rebuild_beside(&none, scales, 0, true);
+            return;
+        }
         match self.replayed(&none, scales) {
-            Ok(fresh) if fresh.held.keys().eq(self.held.keys()) => {
-                // The re-test changed nothing: this estimator goes on (its factors, and so its
-                // answers, to the bit), from now on as warm as the replay.
-                self.replay_work += self.arrivals;
-                self.counters.rebuilds += 1;
-                self.warm = Some(scales);
-                self.worker.retire("so2lin-reorder", fresh);
-            }
-            Ok(fresh) => self.take_over(fresh, &none, 0, step),
+            Ok(fresh) => self.warmed_by(fresh, scales, step),
             // (An internal inconsistency, never seen: not tried again at every step.)
             Err(_) => self.warm = Some(scales),
+        }
+    }
+
+    /// Take the warm-up replay `fresh` (with `scales`) over — or, when the re-test changed no
+    /// loop closure's state, go on with this estimator (its factors, and so its answers, to
+    /// the bit), from now on as warm as the replay.
+    pub(super) fn warmed_by(&mut self, fresh: Self, scales: (f64, f64), step: &mut Step) {
+        if fresh.held.keys().eq(self.held.keys()) {
+            self.replay_work += self.arrivals;
+            self.counters.rebuilds += 1;
+            self.warm = Some(scales);
+            self.worker.retire("so2lin-reorder", fresh);
+        } else {
+            self.take_over(fresh, &BTreeMap::new(), 0, step);
         }
     }
 
@@ -218,7 +228,7 @@ impl OnlineEstimator {
             return;
         }
         if self.rebuilds_beside {
-            self.rebuild_beside(evicted, scales, start);
+            self.rebuild_beside(evicted, scales, start, false);
         } else if let Ok(fresh) = self.replayed(evicted, scales) {
             self.take_over(fresh, evicted, start, step);
         }

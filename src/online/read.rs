@@ -38,10 +38,11 @@ impl OnlineEstimator {
         self.arrivals
     }
 
-    /// An eviction in progress (module `online::rebuild`): the arrival count after which its
+    /// A rebuild in progress (module `online::rebuild`): the arrival count after which the
     /// rebuilt estimator is swapped in, and the input indices of the accepted loop closures
     /// it evicts, ascending — still in the graph and in every answer until then (or until
-    /// [`Self::settle`]). None when no rebuild is in progress.
+    /// [`Self::settle`]); none for the warm-up replay, which re-tests the stream so far at its
+    /// noise scales. None when no rebuild is in progress.
     pub fn evicting(&self) -> Option<(usize, Vec<usize>)> {
         let (at, mut evicted) = self.rebuilding.as_ref()?.evicting();
         // (Not those of its place already held: they stay held through the rebuild.)

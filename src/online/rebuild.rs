@@ -34,6 +34,12 @@
 //! replay takes its own). [`OnlineEstimator::settle`] swaps a rebuild in progress in at once,
 //! for a caller that wants the decisions on every arrival so far (a stream's end).
 //!
+//! The warm-up replay ([`OnlineEstimator::warm_up`]: the stream so far re-tested from its
+//! start at its noise scales, once, early, in a stream that has quarantined something) is made
+//! the same way, nothing evicted: at its swap, if it changed no loop closure's state the live
+//! estimator goes on, as warm as the replay (its answers to the bit); otherwise it is taken
+//! over.
+//!
 //! **The lag.** The live estimator's answers hold a false loop closure until the swap, so the
 //! lag is short: 32 arrivals (3 s of a robot's odometry at 10 Hz), enough for M3500's
 //! rebuilds, which replay a few hundred arrivals in a few milliseconds. A replay's cost grows
@@ -152,6 +158,9 @@ pub(super) struct Rebuilding {
     at: usize,
     /// Arrivals given to it so far.
     given: usize,
+    /// The warm-up replay ([`OnlineEstimator::warm_up`]) with these scales: when it changes
+    /// no loop closure's state, the live estimator goes on, warm from then on.
+    warm_up: Option<(f64, f64)>,
 }
 
 /// Who replays.
@@ -209,9 +218,14 @@ impl OnlineEstimator {
         (job, later)
     }
 
-    /// The end of a replay: the estimate's factors are built at the next read.
+    /// The end of a replay in the step: the estimate's factors are built at the next read.
     pub(super) fn replay_done(&mut self) {
         self.estimate.push(Op::Rebuild);
+        self.end_replay();
+    }
+
+    /// The end of a replay: this estimator steps as a live one (and may evict) from now on.
+    fn end_replay(&mut self) {
         self.replaying = false;
         self.hints = None;
     }
@@ -243,12 +257,14 @@ impl OnlineEstimator {
     }
 
     /// Start the rebuild that evicts `evicted` beside this estimator (module docs), replaying
-    /// from arrival `start` with `warm` scales.
+    /// from arrival `start` with `warm` scales; `warm_up`: it is the warm-up replay
+    /// ([`Self::warm_up`]; nothing evicted, from the start).
     pub(super) fn rebuild_beside(
         &mut self,
         evicted: &BTreeMap<usize, Held>,
         warm: (f64, f64),
         start: usize,
+        warm_up: bool,
     ) {
         let at = self.arrivals + rebuild_lag(self.arrivals - start);
         let here = !self.replayer.ready("so2lin-replay");
@@ -262,8 +278,7 @@ impl OnlineEstimator {
                 fresh.replay_later(edge)
             }
             fn done(mut fresh: Box<OnlineEstimator>) -> Box<OnlineEstimator> {
-                fresh.replaying = false;
-                fresh.hints = None;
+                fresh.end_replay();
                 fresh
             }
             let build = move || {
@@ -284,6 +299,7 @@ impl OnlineEstimator {
             start,
             at,
             given: self.arrivals,
+            warm_up: warm_up.then_some(warm),
         });
     }
 
@@ -353,13 +369,16 @@ impl OnlineEstimator {
                 for edge in later {
                     fresh.replay_later(edge)?;
                 }
-                fresh.replaying = false;
-                fresh.hints = None;
+                fresh.end_replay();
                 Some(Box::new(fresh))
             }),
         };
-        if let Some(fresh) = fresh {
-            self.take_over(*fresh, &r.evicted, r.start, step);
+        match (fresh, r.warm_up) {
+            (Some(fresh), Some(scales)) => self.warmed_by(*fresh, scales, step),
+            (Some(fresh), None) => self.take_over(*fresh, &r.evicted, r.start, step),
+            // (An internal inconsistency, never seen: not tried again at every step.)
+            (None, Some(scales)) => self.warm = Some(scales),
+            (None, None) => {}
         }
     }
 }
@@ -384,7 +403,8 @@ mod tests {
     }
 
     /// Evicting worlds (40 random false loop closures, declared noise 16× too wide) streamed
-    /// with rebuilds beside: no eviction's step rebuilds; each rebuild is swapped in exactly
+    /// with rebuilds beside: no step rebuilds (the warm-up replay included); each rebuild is
+    /// swapped in exactly
     /// [`REBUILD_LAG`] arrivals after the step that decided it; the answers are exact before
     /// the swap (the live estimator's, holding the evicted edges) and after it (the rebuilt
     /// one's, whose factors its builder made), and after a [`OnlineEstimator::settle`] at the
@@ -432,8 +452,8 @@ mod tests {
                             }
                         }
                         None => {
+                            assert!(!rebuilt, "seed {seed} arrival {i}: rebuilt in the step");
                             if let Some((at, evicted)) = est.evicting() {
-                                assert!(!rebuilt, "seed {seed} arrival {i}: rebuilt in the step");
                                 assert!(at >= i + 1 + REBUILD_LAG, "seed {seed}");
                                 // Still in the graph, and in every answer, until the swap.
                                 for &e in &evicted {
