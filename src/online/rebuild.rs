@@ -48,21 +48,21 @@
 //! every eight it replays. Back to back no lag is enough: the builder replays about as fast as
 //! the live estimator steps, and it began behind.
 //!
-//! **Cost** (`so2lin stream FILE --json`, robot order, the newest pose read after every step;
-//! one run each, alternating with the build that rebuilt in the step; `benches/MEASUREMENTS.md`,
-//! thirtieth session). At a sensor's rate the builder is done before `k'`, and the swap's step
-//! only takes the rebuilt estimator over: M3500 + 1 000 false loop closures at `--rate 1000`
-//! (random seeds 1–12 and clustered 1–6, lag 32), the fourteen streams that evict went from a
-//! worst step of 2.8–13.8 ms (median 6.6) to 1.1–3.1 ms (2.2), what is left being other steps
-//! (the warm-up replay, long loop closures); the 20 000-pose world at `--rate 200`, 957 →
-//! 10.9 ms. Back to back the swap's step waits for what the builder has left: about the
-//! rebuild's cost, with the whole build of the estimate's factors where a rebuild in the step
-//! derived them from the live ones (`Laplacian::adopt`): M3500 + 1 000's worst step 1.5–9.5 ms
-//! (median 6.2) → 1.6–12.6 ms (7.8). The decisions are as good: on each of those 18 streams the
-//! same number of false edges kept (3 of 18 000 in all) and of genuine loop closures held (1),
-//! back to back and at 1 kHz; on the world, 1 of 200 kept either way. Memory: the builder's
-//! estimator lives beside the live one until the swap (peak RSS up to 10 MB more on M3500 +
-//! 1 000, 391 → 534 MB on the world).
+//! **Cost** (`so2lin stream FILE --json`, robot order, the newest pose read after every step; one
+//! run each, alternating with the build that rebuilt in the step; `benches/MEASUREMENTS.md`,
+//! thirtieth session). At a sensor's rate the builder is done before `k'`, and the swap's step only
+//! takes the rebuilt estimator over: M3500 + 1 000 false loop closures at `--rate 1000` (random
+//! seeds 1–12 and clustered 1–6, lag 32), the fourteen streams that evict went from a worst step of
+//! 2.8–13.8 ms (median 6.6) to 1.1–3.1 ms (2.2), what is left being other steps (long loop
+//! closures, a checkpoint's copy at arrival 4 096: 1.2–1.6 ms; the warm-up replay, since made
+//! beside as well); the 20 000-pose world at `--rate 200`, 957 → 10.9 ms. Back to back the swap's
+//! step waits for what the builder has left: about the rebuild's cost, with the whole build of the
+//! estimate's factors where a rebuild in the step derived them from the live ones
+//! (`Laplacian::adopt`): M3500 + 1 000's worst step 1.5–9.5 ms (median 6.2) → 1.6–12.6 ms (7.8).
+//! The decisions are as good: on each of those 18 streams the same number of false edges kept (3 of
+//! 18 000 in all) and of genuine loop closures held (1), back to back and at 1 kHz; on the world, 1
+//! of 200 kept either way. Memory: the builder's estimator lives beside the live one until the swap
+//! (peak RSS up to 10 MB more on M3500 + 1 000, 391 → 534 MB on the world).
 
 use std::collections::BTreeMap;
 
