@@ -46,6 +46,8 @@
 //! replaying the arrivals without it, from the latest checkpoint before e's arrival (module
 //! [`super::checkpoint`]; from the start if there is none) — module [`super::replay`] for what
 //! a replay reuses; all replays together are bounded by [`REPLAY_BUDGET`] times the arrivals.
+//! The replay runs beside the live estimator and is swapped in a number of arrivals later fixed
+//! at the eviction (module [`super::rebuild`]).
 
 use std::collections::BTreeMap;
 use std::f64::consts::TAU;
