@@ -94,24 +94,24 @@
 //! the replay's end instead of through every replayed step (M3500 + 1000 false edges, the
 //! newest pose read after every step: worst step, a replay, 120–168 ms before both, 39–49 ms
 //! after) — since 2026-12-06 derived from the replaced estimator's factors, which differ from
-//! them in a few rows (module `online/estimate.rs`). Since 2026-12-06 the rebuild is made
-//! **beside the live estimator** (module `rebuild`): the eviction's step hands the replay to a
-//! builder thread and goes on; every later arrival goes to the builder too, and the rebuilt
-//! estimator, its estimate's factors built by the builder, is swapped in 32 arrivals later (or
-//! an eighth of the arrivals it replays, if more: a count, so the run does not depend on the
-//! threads' timing) — until then the
-//! answers, and [`OnlineEstimator::rejected`], are those of the live estimator, which still
-//! holds the evicted edges ([`OnlineEstimator::evicting`] names them), and
-//! [`OnlineEstimator::settle`] swaps a rebuild in progress in at once (a stream's end). No
-//! step waits for the rebuild when the edges come at a sensor's rate; back to back, the swap's
-//! step waits for what the builder has left. An evicted edge is re-tested like a
-//! quarantined one, counting from its eviction, and later replays keep it in quarantine until
-//! then (re-tested at its arrival, it would pass
-//! as it first did and be accepted again). At the step that swaps a rebuild in,
-//! [`Step::quarantined`] lists the evicted edges (and any other edge the rebuild quarantined),
-//! [`Step::readmitted`] the held edges the rebuild accepted, and the step's `kind` and
-//! `rescreened` describe the live estimator's step (cycle ids may have changed). An earlier audit that re-tested every accepted cycle at
-//! each doubling of the cycle count evicted genuine loop closures of the clean CSAIL and
+//! them in a few rows (module `online/estimate.rs`). Since 2026-12-06 the rebuild is made **beside
+//! the live estimator** (module `rebuild`): the eviction's step hands the replay to a builder
+//! thread and goes on; every later arrival goes to the builder too, and the rebuilt estimator, its
+//! estimate's factors built by the builder, is swapped in 32 arrivals later (or an eighth of the
+//! arrivals it replays, if more: a count, so the run does not depend on the threads' timing) —
+//! until then the answers, and [`OnlineEstimator::rejected`], are those of the live estimator,
+//! which still holds the evicted edges ([`OnlineEstimator::evicting`] names them), and
+//! [`OnlineEstimator::settle`] swaps a rebuild in progress in at once (a stream's end). The
+//! warm-up replay (above) is made the same way, and kept only if it changed a loop closure's
+//! state. No step waits for the rebuild when the edges come at a sensor's rate; back to back, the
+//! swap's step waits for what the builder has left. An evicted edge is re-tested like a
+//! quarantined one, counting from its eviction, and later replays keep it in quarantine until then
+//! (re-tested at its arrival, it would pass as it first did and be accepted again). At the step
+//! that swaps a rebuild in, [`Step::quarantined`] lists the evicted edges (and any other edge the
+//! rebuild quarantined), [`Step::readmitted`] the held edges the rebuild accepted, and the step's
+//! `kind` and `rescreened` describe the live estimator's step (cycle ids may have changed). An
+//! earlier audit that re-tested every accepted cycle at each doubling of the cycle count evicted
+//! genuine loop closures of the clean CSAIL and
 //! ais2klinik files and was removed.
 //!
 //! **Re-admission**: a quarantined loop closure is re-tested, through the same path a new
