@@ -271,6 +271,9 @@ pub struct OnlineEstimator {
     worker: renewal::Worker,
     /// Steps that waited for a renewal of L.
     cond_waits: usize,
+    /// Steps that waited for a rebuild's builder ([`Counters::rebuild_waits`]), over the
+    /// estimators this one replaced.
+    rebuild_waits: usize,
     /// The live P_UU factor's work so far ([`crate::gamma::Conditioner::take_work`]).
     cond_work: u64,
     /// The last renewal builder's work per determined cycle (the same units; 0 before one).
@@ -394,6 +397,7 @@ impl OnlineEstimator {
             renewal: None,
             worker: renewal::Worker::default(),
             cond_waits: 0,
+            rebuild_waits: 0,
             cond_work: 0,
             rebuild_work_per_row: 0.0,
             arrivals: 0,
@@ -728,6 +732,7 @@ impl OnlineEstimator {
         let (renewals, waits) = self.estimate.renewals();
         self.counters.estimate_renewals = renewals;
         self.counters.renewal_waits = waits + self.cond_waits;
+        self.counters.rebuild_waits = self.rebuild_waits;
         self.counters.estimate_relinearisations = self.estimate.relinearisations;
         self.counters.maintenance_renewals = self.estimate.renewed_now();
         self.counters.replayed_arrivals = self.replay_work;

@@ -212,6 +212,7 @@ impl OnlineEstimator {
             renewal: None,
             worker: Default::default(),
             cond_waits: self.cond_waits,
+            rebuild_waits: self.rebuild_waits,
             cond_work: self.cond_work,
             rebuild_work_per_row: self.rebuild_work_per_row,
             arrivals: self.arrivals,

@@ -444,7 +444,7 @@ impl Estimate {
 
     /// Whether the factors are still to be built: deferred ([`Op::Defer`], applied or
     /// pending) or an [`Op::Rebuild`] pending — what [`Self::inherit`] would serve.
-    pub fn builds_later(&self) -> bool {
+    fn builds_later(&self) -> bool {
         self.factors.deferred()
             || (self.pending.iter()).any(|op| matches!(op, Op::Defer | Op::Rebuild))
     }
@@ -562,9 +562,10 @@ impl Estimate {
     /// estimate, deferred, builds its factors from them when they match
     /// ([`Laplacian::adopt`]), instead of from nothing — or from those `old` inherited, if it
     /// was itself a replay's not read since. Nothing when `old` has a loop closure tried and
-    /// not yet kept or undone.
+    /// not yet kept or undone, or when this estimate builds no factors later (a rebuild beside
+    /// built its own: module `online::rebuild`; `old`'s would be held for nothing).
     pub fn inherit(&mut self, old: &mut Estimate) {
-        if old.tried.is_some() {
+        if old.tried.is_some() || !self.builds_later() {
             return;
         }
         self.inherited = if old.factors.deferred() {

@@ -246,6 +246,7 @@ impl OnlineEstimator {
         step: &mut Step,
     ) {
         fresh.replay_work = self.replay_work + (self.arrivals - start);
+        fresh.rebuild_waits = self.rebuild_waits;
         fresh.counters.rebuilds = self.counters.rebuilds + 1;
         fresh.counters.rebuilds_from_checkpoint =
             self.counters.rebuilds_from_checkpoint + usize::from(start > 0);
@@ -266,13 +267,10 @@ impl OnlineEstimator {
                 .filter(|(i, _)| !self.held.contains_key(i) && !evicted.contains_key(i))
                 .map(|(_, h)| h.rejected),
         );
-        // The caller's room again: the estimate's factors were built at the replay's end.
+        // The caller's room (asked for since the replay began; otherwise a no-op).
         fresh.keep_room(self.room_for);
-        // A replay's factors, built at its first read, are derived from these when they
-        // match; a rebuild beside built its own (module `rebuild`).
-        if fresh.estimate.builds_later() {
-            fresh.estimate.inherit(&mut self.estimate);
-        }
+        // A replay's factors, built at its first read, are derived from these when they match.
+        fresh.estimate.inherit(&mut self.estimate);
         fresh.replayer = std::mem::take(&mut self.replayer);
         // The replaced estimator (its factors, thousands of rows) is freed on the worker,
         // not in this step.

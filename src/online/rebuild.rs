@@ -342,6 +342,7 @@ impl OnlineEstimator {
         if self.rebuilding.is_none() {
             return false;
         }
+        // (What the swap changed goes to a step nobody reads: the caller reads `rejected()`.)
         let mut step = Step {
             edge: self.arrivals,
             kind: super::StepKind::Quarantined,
@@ -361,7 +362,7 @@ impl OnlineEstimator {
             return;
         };
         let fresh = match r.build {
-            Build::Beside(beside) => beside.collect(&mut self.cond_waits),
+            Build::Beside(beside) => beside.collect(&mut self.rebuild_waits),
             // Its work is not counted here, as a builder's is not (module `crate::work`).
             Build::Here(job, later) => crate::work::paused(|| {
                 let mut fresh = job.run().ok()?;

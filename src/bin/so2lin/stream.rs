@@ -305,6 +305,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "max_lag_ms": args.rate.map(|_| max_lag.as_secs_f64() * 1e3),
             "estimate_renewals": c.estimate_renewals,
             "renewal_waits": c.renewal_waits,
+            "rebuild_waits": c.rebuild_waits,
             "estimate_relinearisations": c.estimate_relinearisations,
             "maintenance": args.maintain.then_some(maintenance),
             "steps": c.steps,
@@ -393,7 +394,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         );
     }
     println!(
-        "online: {} determined, {} ambiguous, {} inconsistent, {} re-screens, {} factor reorders, {} estimate renewals, {} waited for a renewal's builder (of either factor), {} re-linearisations of the positions",
+        "online: {} determined, {} ambiguous, {} inconsistent, {} re-screens, {} factor reorders, {} estimate renewals, {} waited for a renewal's builder (of either factor), {} for an eviction's rebuild, {} re-linearisations of the positions",
         c.determined,
         c.ambiguous,
         c.inconsistent,
@@ -401,6 +402,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         c.reorders,
         c.estimate_renewals,
         crate::report::plural(c.renewal_waits, "step", "steps"),
+        c.rebuild_waits,
         c.estimate_relinearisations
     );
     if args.maintain {
