@@ -630,7 +630,8 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         self.stale_rhs = None;
         self.fill_after_renewal = fresh.nnz() as f64 / self.len().max(1) as f64;
         self.last_edge = None;
-        let old = std::mem::replace(&mut self.factor, fresh);
+        let mut old = std::mem::replace(&mut self.factor, fresh);
+        self.factor.take_scratch_of(&mut old);
         if old.len() > 0 {
             self.worker.retire("so2lin-renew", old);
         }

@@ -132,6 +132,52 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         Leftover { residual, cosines }
     }
 
+    /// Take over `old`'s scratch buffers (the row being rotated, its next state, the aligned
+    /// values, the spare row, the tried row's undo record), emptied, their capacity kept, when
+    /// this factor replaces `old` (a renewal swapped in). A fresh factor's buffers start empty
+    /// and grow by doubling in the steps after the swap, each growth a copy into memory the
+    /// allocator must first fault in: the undo record of a heavy loop closure holds every row
+    /// it rotated (about a megabyte on city10000), and on city10000 such growth took a tenth of
+    /// the robot thread's samples (`perf`; `benches/MEASUREMENTS.md`, thirty-first session).
+    /// A pending tried row's record is not taken (its factor must still undo it).
+    pub(crate) fn take_scratch_of(&mut self, old: &mut Self) {
+        fn emptied<T>(mine: &mut Vec<T>, theirs: &mut Vec<T>) {
+            if theirs.capacity() > mine.capacity() {
+                std::mem::swap(mine, theirs);
+            }
+            mine.clear();
+        }
+        for (mine, theirs) in [
+            (&mut self.w, &mut old.w),
+            (&mut self.w_next, &mut old.w_next),
+            (&mut self.spare_row, &mut old.spare_row),
+        ] {
+            emptied(&mut mine.pos, &mut theirs.pos);
+            emptied(&mut mine.val, &mut theirs.val);
+        }
+        emptied(&mut self.aligned, &mut old.aligned);
+        emptied(&mut self.path, &mut old.path);
+        let room = |u: &Option<Box<Undo<K, L>>>| u.as_ref().map_or(0, |u| u.values.capacity());
+        let idle = |u: &Option<Box<Undo<K, L>>>| u.as_ref().is_none_or(|u| !u.active);
+        if idle(&self.undo) && idle(&old.undo) && room(&old.undo) > room(&self.undo) {
+            std::mem::swap(&mut self.undo, &mut old.undo);
+            if let Some(u) = &mut self.undo {
+                u.rows.clear();
+                u.values.clear();
+                u.positions.clear();
+                u.gains.clear();
+            }
+        }
+    }
+
+    /// The scratch buffers' room, in values (tests of [`Self::take_scratch_of`]'s callers).
+    #[cfg(test)]
+    pub(crate) fn scratch_room(&self) -> usize {
+        self.w.val.capacity()
+            + self.w_next.val.capacity()
+            + self.undo.as_ref().map_or(0, |u| u.values.capacity())
+    }
+
     /// Keep the row of the last [`Self::try_row`].
     pub fn keep_row(&mut self) {
         if let Some(u) = &mut self.undo {
@@ -578,5 +624,88 @@ mod tests {
             cases[kind.min(2)] += 1;
         }
         assert!(cases.iter().all(|&c| c > 100), "cases {cases:?}");
+    }
+
+    /// A chain of `n` variables with random loop closures, each tried then kept, so that the
+    /// scratch buffers and the undo record have grown.
+    fn grown(n: usize, seed: u64) -> SqrtInfo<2> {
+        let mut s = seed;
+        let mut f = SqrtInfo::<2>::new();
+        for v in 0..n {
+            f.push_variable(v);
+        }
+        f.add_row(&[(0, 1.0)], [0.0; 2]);
+        for v in 1..n {
+            f.add_row(&[(v - 1, -1.0), (v, 1.0)], [lcg(&mut s), lcg(&mut s)]);
+        }
+        for _ in 0..60 {
+            let (a, b) = (
+                (lcg(&mut s) * n as f64) as usize,
+                (lcg(&mut s) * n as f64) as usize,
+            );
+            if a != b {
+                let _ = f.try_row(&[(a, -2.0), (b, 2.0)], [lcg(&mut s), lcg(&mut s)]);
+                f.keep_row();
+            }
+        }
+        f
+    }
+
+    /// A factor that replaces another takes its scratch buffers emptied, with their capacity
+    /// (so that the steps after a renewal's swap do not grow them again), and computes the
+    /// same bits as without them: tried rows kept and taken back, rows added. A tried row still
+    /// pending in the old factor keeps its record there.
+    #[test]
+    fn a_replacing_factor_takes_the_old_ones_scratch() {
+        let mut old = grown(60, 3);
+        let undo_room = old.undo.as_ref().map_or(0, |u| u.values.capacity());
+        let w_room = old.w.val.capacity().max(old.w_next.val.capacity());
+        assert!(
+            undo_room > 60 && w_room > 2,
+            "{undo_room} {w_room}: nothing grew"
+        );
+        let fresh = grown(40, 5);
+        let (mut with, mut without) = (fresh.clone(), fresh);
+        with.take_scratch_of(&mut old);
+        let u = with.undo.as_ref().expect("the undo record taken");
+        assert!(u.values.capacity() >= undo_room && !u.active);
+        assert!(u.rows.is_empty() && u.values.is_empty() && u.positions.is_empty());
+        assert!(with.w.val.capacity().max(with.w_next.val.capacity()) >= w_room);
+        assert!(with.w.len() == 0 && with.w_next.len() == 0 && with.aligned.is_empty());
+        let mut s = 9u64;
+        for k in 0..30 {
+            let (a, b) = ((k * 7) % 40, (k * 13 + 5) % 40);
+            if a == b {
+                continue;
+            }
+            let row = [(a, -1.5), (b, 1.5)];
+            let beta = [lcg(&mut s), lcg(&mut s)];
+            let (l1, l2) = (with.try_row(&row, beta), without.try_row(&row, beta));
+            assert_eq!(l1, l2);
+            if k % 3 == 0 {
+                with.undo_row();
+                without.undo_row();
+            } else {
+                with.keep_row();
+                without.keep_row();
+            }
+            assert_eq!(
+                (&with.rows, &with.diag, &with.d),
+                (&without.rows, &without.diag, &without.d)
+            );
+        }
+        // A pending tried row stays with its factor.
+        let mut pending = grown(30, 7);
+        let before = pending.clone();
+        let _ = pending.try_row(&[(1, -1.0), (28, 1.0)], [0.3, 0.1]);
+        let mut other = grown(20, 8);
+        other.take_scratch_of(&mut pending);
+        assert!(pending.undo.as_ref().is_some_and(|u| u.active));
+        assert!(other.undo.as_ref().is_none_or(|u| !u.active));
+        pending.undo_row();
+        assert_eq!(
+            (&pending.rows, &pending.diag, &pending.d),
+            (&before.rows, &before.diag, &before.d)
+        );
     }
 }
