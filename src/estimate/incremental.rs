@@ -1053,23 +1053,7 @@ mod tests {
     fn a_tried_row_predicts_and_is_taken_back_exactly() {
         let mut s = 11u64;
         let n = 25;
-        let mut f = SqrtInfo::<2>::new();
-        for v in 0..n {
-            f.push_variable(v);
-        }
-        f.add_row(&[(0, 1.0)], [0.0; 2]);
-        for v in 1..n {
-            f.add_row(&[(v - 1, -1.0), (v, 1.0)], [lcg(&mut s), lcg(&mut s)]);
-        }
-        for _ in 0..15 {
-            let (a, b) = (
-                (lcg(&mut s) * n as f64) as usize,
-                (lcg(&mut s) * n as f64) as usize,
-            );
-            if a != b {
-                f.add_row(&[(a, -2.0), (b, 2.0)], [lcg(&mut s), lcg(&mut s)]);
-            }
-        }
+        let mut f = chain_with_closures(n, 15, &mut s, false);
         // A loop closure across the chain: its row meets fill on its path.
         let row = [(2, -3.0), (n - 3, 3.0)];
         let beta = [0.4, -1.1];
@@ -1110,6 +1094,39 @@ mod tests {
         );
         assert!(f.shift_last_row([1.0, 0.0]) && g.shift_last_row([1.0, 0.0]));
         assert_eq!(f.d, g.d);
+    }
+
+    /// A chain of `n` variables (a prior on the first) and up to `closures` random loop
+    /// closures between them, added, or tried and kept (`tried`: the undo record grows).
+    pub(super) fn chain_with_closures(
+        n: usize,
+        closures: usize,
+        s: &mut u64,
+        tried: bool,
+    ) -> SqrtInfo<2> {
+        let mut f = SqrtInfo::<2>::new();
+        for v in 0..n {
+            f.push_variable(v);
+        }
+        f.add_row(&[(0, 1.0)], [0.0; 2]);
+        for v in 1..n {
+            f.add_row(&[(v - 1, -1.0), (v, 1.0)], [lcg(s), lcg(s)]);
+        }
+        for _ in 0..closures {
+            let (a, b) = ((lcg(s) * n as f64) as usize, (lcg(s) * n as f64) as usize);
+            if a == b {
+                continue;
+            }
+            let row = [(a, -2.0), (b, 2.0)];
+            let beta = [lcg(s), lcg(s)];
+            if tried {
+                let _ = f.try_row(&row, beta);
+                f.keep_row();
+            } else {
+                f.add_row(&row, beta);
+            }
+        }
+        f
     }
 
     /// A zero pivot (a variable no row touches) makes the Cholesky give up, not panic.

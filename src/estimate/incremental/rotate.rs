@@ -557,7 +557,7 @@ fn turn(downdate: bool, (c, s): (f64, f64), rkj: f64, wj: f64) -> (f64, f64) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::estimate::incremental::tests::lcg;
+    use crate::estimate::incremental::tests::{chain_with_closures, lcg};
 
     /// [`align`] against a plain lookup, on random rows and random rests: rests on the row's
     /// whole pattern, on it less its first position (the fast path; a row of one position
@@ -629,26 +629,7 @@ mod tests {
     /// A chain of `n` variables with random loop closures, each tried then kept, so that the
     /// scratch buffers and the undo record have grown.
     fn grown(n: usize, seed: u64) -> SqrtInfo<2> {
-        let mut s = seed;
-        let mut f = SqrtInfo::<2>::new();
-        for v in 0..n {
-            f.push_variable(v);
-        }
-        f.add_row(&[(0, 1.0)], [0.0; 2]);
-        for v in 1..n {
-            f.add_row(&[(v - 1, -1.0), (v, 1.0)], [lcg(&mut s), lcg(&mut s)]);
-        }
-        for _ in 0..60 {
-            let (a, b) = (
-                (lcg(&mut s) * n as f64) as usize,
-                (lcg(&mut s) * n as f64) as usize,
-            );
-            if a != b {
-                let _ = f.try_row(&[(a, -2.0), (b, 2.0)], [lcg(&mut s), lcg(&mut s)]);
-                f.keep_row();
-            }
-        }
-        f
+        chain_with_closures(n, 60, &mut { seed }, true)
     }
 
     /// A factor that replaces another takes its scratch buffers emptied, with their capacity
