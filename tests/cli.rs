@@ -446,6 +446,75 @@ fn stream_reserves_the_files_counts_unless_told_not_to() {
     );
 }
 
+/// `stream --trace FILE` writes one line per step, in the order they ran: every edge of the file
+/// once (by its index in the file), kinds and times that add up to the run's own figures, the
+/// counted work of each step (whose totals are the JSON's), and the steps during which an
+/// eviction's rebuild was in progress. A path it cannot write is refused, naming the option.
+#[test]
+fn stream_traces_every_step() {
+    let g = simulated(
+        "stream_trace.g2o",
+        &["--poses", "400", "--seed", "2", "--outliers", "12"],
+    );
+    let path = scratch("stream_trace.csv");
+    let v = run_json([
+        "stream".as_ref(),
+        "--json".as_ref(),
+        "--trace".as_ref(),
+        path.as_os_str(),
+        g.as_os_str(),
+    ]);
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut lines = text.lines();
+    assert_eq!(
+        lines.next(),
+        Some("step,edge,kind,ns,search_nodes,estimate_entries,conditioning_entries,rebuilding")
+    );
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    let n = v["latency_us"]["all"]["count"].as_u64().unwrap() as usize;
+    assert_eq!(rows.len(), n);
+    let num = |r: &[&str], i: usize| r[i].parse::<u64>().unwrap();
+    let mut edges: Vec<u64> = rows.iter().map(|r| num(r, 1)).collect();
+    edges.sort_unstable();
+    assert!(edges.iter().enumerate().all(|(i, &e)| e == i as u64));
+    let (mut tree, mut quarantined, mut rebuilding, mut ns) = (0, 0, 0, 0u64);
+    let mut work = [0u64; 3];
+    for (k, r) in rows.iter().enumerate() {
+        assert_eq!((r.len(), num(r, 0)), (8, k as u64), "{r:?}");
+        match r[2] {
+            "tree" => tree += 1,
+            "quarantined" => quarantined += 1,
+            kind => assert_eq!(kind, "cycle"),
+        }
+        ns += num(r, 3);
+        for (w, i) in work.iter_mut().zip(4..7) {
+            *w += num(r, i);
+        }
+        rebuilding += num(r, 7);
+    }
+    assert_eq!(tree, v["latency_us"]["tree"]["count"].as_u64().unwrap());
+    assert!(
+        quarantined > 0,
+        "no loop closure quarantined on arrival: {v}"
+    );
+    assert!(v["rebuilds"].as_u64().unwrap() > 0 && rebuilding > 0, "{v}");
+    assert_eq!(ns as f64 / 1e9, v["steps_seconds"].as_f64().unwrap());
+    for (w, key) in work
+        .iter()
+        .zip(["search_nodes", "estimate_entries", "conditioning_entries"])
+    {
+        assert_eq!(Some(*w), v["work_per_step"][key]["total"].as_u64(), "{key}");
+    }
+    let refused = so2lin()
+        .args(["stream", "--trace"])
+        .arg(scratch("no_such_dir").join("trace.csv"))
+        .arg(&g)
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("--trace"));
+}
+
 /// `stream --rate HZ` feeds the edges as a robot's front end would, one every 1/HZ seconds: the
 /// run lasts at least that long (sleeps never end early), reports its rate and how far it fell
 /// behind, and answers exactly as back to back (the steps, not the clock, decide). A rate that

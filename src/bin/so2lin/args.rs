@@ -365,6 +365,12 @@ pub(crate) enum Command {
         /// --rate it runs in the wait for the next edge.
         #[arg(long)]
         maintain: bool,
+        /// Write one CSV line per step to FILE: step, the edge's index in the file, kind
+        /// (tree, cycle, quarantined), time in ns (as in the latencies), the step's counted
+        /// work (search nodes, estimate factor entries, P_UU factor entries) and whether an
+        /// eviction's rebuild was in progress beside the estimator after it (1 or 0).
+        #[arg(long, value_name = "FILE")]
+        trace: Option<PathBuf>,
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,

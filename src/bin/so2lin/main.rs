@@ -118,6 +118,7 @@ fn main() -> ExitCode {
             renewal_delay,
             no_reserve,
             maintain,
+            trace,
             json,
         } => {
             // At least one edge every 10⁶ s (the log's longest step), at most 10⁹ a second.
@@ -163,6 +164,7 @@ fn main() -> ExitCode {
                     rate,
                     reserve: !no_reserve,
                     maintain,
+                    trace: trace.as_deref(),
                     json,
                 })
             }

@@ -53,7 +53,49 @@ pub struct StreamArgs<'a> {
     pub reserve: bool,
     /// Call `OnlineEstimator::maintain` after every step, untimed by the steps.
     pub maintain: bool,
+    /// Write one line per step here ([`Trace`]).
+    pub trace: Option<&'a Path>,
     pub json: bool,
+}
+
+/// `--trace FILE`: one CSV line per step, in the order the steps ran — which steps were slow
+/// and what they did. Columns: the step's index, the edge's index in the file (0-based, in the
+/// file's order: the index `rejected_edges` gives), its kind (`tree`, `cycle`, `quarantined`),
+/// its time in ns (the add_edge and the read `--estimate` asks for, as in `latency_us`), its
+/// counted work (search nodes settled, estimate factor entries, P_UU factor entries: the same
+/// in every run), and whether an eviction's rebuild was in progress beside the estimator after
+/// it (`OnlineEstimator::evicting`: its swap is a later step).
+struct Trace {
+    out: std::io::BufWriter<std::fs::File>,
+    path: std::path::PathBuf,
+}
+
+impl Trace {
+    const HEADER: &'static str =
+        "step,edge,kind,ns,search_nodes,estimate_entries,conditioning_entries,rebuilding";
+
+    fn create(path: &Path) -> Result<Self, String> {
+        let file =
+            std::fs::File::create(path).map_err(|e| format!("--trace {}: {e}", path.display()))?;
+        let mut trace = Self {
+            out: std::io::BufWriter::new(file),
+            path: path.to_path_buf(),
+        };
+        trace.line(format_args!("{}", Self::HEADER))?;
+        Ok(trace)
+    }
+
+    fn line(&mut self, line: std::fmt::Arguments<'_>) -> Result<(), String> {
+        use std::io::Write;
+        writeln!(self.out, "{line}").map_err(|e| format!("--trace {}: {e}", self.path.display()))
+    }
+
+    fn finish(mut self) -> Result<(), String> {
+        use std::io::Write;
+        self.out
+            .flush()
+            .map_err(|e| format!("--trace {}: {e}", self.path.display()))
+    }
 }
 
 /// What `--maintain` cost between the steps.
@@ -190,6 +232,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     let paced = Instant::now();
     let mut max_lag = std::time::Duration::ZERO;
     let mut maintenance = MaintenanceCost::default();
+    let mut trace = args.trace.map(Trace::create).transpose()?;
     for (k, &edge) in edges.iter().enumerate() {
         if let Some(hz) = args.rate {
             let arrival = std::time::Duration::from_secs_f64(k as f64 / hz);
@@ -235,6 +278,21 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             maintenance.seconds += spent.as_secs_f64();
             maintenance.worst_ms = maintenance.worst_ms.max(spent.as_secs_f64() * 1e3);
         }
+        if let Some(t) = trace.as_mut() {
+            let kind = match step.kind {
+                StepKind::Tree { .. } => "tree",
+                StepKind::Cycle(_) => "cycle",
+                StepKind::Quarantined => "quarantined",
+            };
+            t.line(format_args!(
+                "{k},{},{kind},{ns},{},{},{},{}",
+                file_index[k],
+                w.search_nodes,
+                w.estimate_entries,
+                w.conditioning_entries,
+                u8::from(est.evicting().is_some()),
+            ))?;
+        }
         all.push(ns);
         match step.kind {
             StepKind::Tree { .. } => tree.push(ns),
@@ -246,6 +304,9 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     }
     bar.finish_and_clear();
     std::hint::black_box(sink);
+    if let Some(t) = trace {
+        t.finish()?;
+    }
     let backpressure = recorder.as_ref().map(Recorder::backpressure);
     if let Some(rec) = recorder {
         rec.finish(&mut est).map_err(|e| e.to_string())?;
