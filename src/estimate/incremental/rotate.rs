@@ -137,8 +137,9 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     /// this factor replaces `old` (a renewal swapped in). A fresh factor's buffers start empty
     /// and grow by doubling in the steps after the swap, each growth a copy into memory the
     /// allocator must first fault in: the undo record of a heavy loop closure holds every row
-    /// it rotated (about a megabyte on city10000), and on city10000 such growth took a tenth of
-    /// the robot thread's samples (`perf`; `benches/MEASUREMENTS.md`, thirty-first session).
+    /// it rotated (about a megabyte on city10000), and on city10000 that growth took 2 % of the
+    /// robot thread's samples (`perf`; `benches/MEASUREMENTS.md`, thirty-first session; the
+    /// steps' time moved within the noise).
     /// A pending tried row's record is not taken (its factor must still undo it).
     pub(crate) fn take_scratch_of(&mut self, old: &mut Self) {
         fn emptied<T>(mine: &mut Vec<T>, theirs: &mut Vec<T>) {
