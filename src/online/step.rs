@@ -142,8 +142,8 @@ pub struct Counters {
     /// Steps that had to wait for a renewal's builder thread (0 when it keeps up).
     pub renewal_waits: usize,
     /// Steps that swapped in an eviction's rebuild (module `online::rebuild`) and found its
-    /// builder still replaying, so waited for it (0 when the builder keeps up, as at a
-    /// sensor's rate).
+    /// builder still replaying, so waited for it (0 when the builder keeps up: when the edges
+    /// come slowly enough for the replays' length).
     pub rebuild_waits: usize,
     /// Times every position row was re-linearised at the current headings because they had
     /// moved by more than the bound on the fast answers' heading lag (1 rad; module
