@@ -46,11 +46,36 @@
 //! with its arrivals (up to 1.2 s for 8 953 of them in a 20 000-pose world with 200 false loop
 //! closures), and the lag with it: the builder has the live steps' time of one arrival for
 //! every eight it replays. Back to back no lag is enough: the builder replays about as fast as
-//! the live estimator steps, and it began behind. Nor is it at 200 edges a second on a
-//! 100 000-pose world with 500 false loop closures (`so2lin simulate --poses 100000 --seed 1
-//! --outliers 500`), whose false edges accepted early are evicted tens of thousands of arrivals
-//! later: replays of 20 000–167 000 arrivals at 0.8–1.7 ms each, and swaps that waited 7–117 s
-//! (README, "Not on a 100 000-pose world").
+//! the live estimator steps, and it began behind. At 200 edges a second on a 100 000-pose world
+//! with 500 false loop closures (`so2lin simulate --poses 100000 --seed 1 --outliers 500`),
+//! whose false edges accepted early are evicted tens of thousands of arrivals later, one of 25
+//! swaps waited 3.4 s (a replay of 61 570 arrivals at 0.56 ms each, whose lag of 7 696
+//! arrivals gave it 38.5 s; README, "Not on a 100 000-pose world").
+//!
+//! **The builder's pace.** The builder screens the loop closures it replays as a live step that
+//! reads the estimate does: with the estimate's factors (module [`super::predict`]: the chord
+//! predicted from the headings' factor, its row then kept or taken back), built when the replay
+//! starts — from the checkpoint's graph, one factorisation, or empty at the first arrival — and
+//! kept through it. A replay in the step (module [`super::evict`], when no builder thread can
+//! be started) defers them and builds them at its end, derived from the replaced estimator's
+//! ([`super::estimate::Estimate::inherit`]), screening through the factor of P_UU meanwhile,
+//! which is cheaper while P_UU is small; but the factor of P_UU fills with a large world's
+//! cycles (a long cycle shares edges with many), and its solves with it. On a 50 000-pose world
+//! with 250 false loop closures (`so2lin simulate --poses 50000 --seed 1 --outliers 250`; 12
+//! rebuilds replaying 240 465 arrivals; `so2lin stream FILE --json`, robot order, the newest
+//! pose read after every step; one run each way, `benches/MEASUREMENTS.md`, thirty-second
+//! session) the builder's replays took 35.4 s in all against 97.9 s through P_UU: the late ones
+//! 0.15–0.30 ms an arrival against 0.28–1.72 (15 984 arrivals from a late checkpoint: 4.8 s
+//! against 27.5), the early ones from the first arrival about twice as long (32 112 arrivals:
+//! 1.53 s against 0.87 s). Back to back that took the steps from 68.0 to 37.4 s and the worst
+//! step, a swap waiting for its builder, from 30.4 to 12.8 s; at `--rate 200` from 21.5 s to
+//! 118 ms; peak RSS 1.84 → 1.01 GB; the same decisions. On the 100 000-pose world at 200 Hz
+//! (one run, against the thirty-first session's): swaps that waited 7–117 s (seven of 25) → one
+//! of 3.4 s, 377 → 101 s of steps, the replays 0.2–0.56 ms an arrival against 0.8–1.7, the same
+//! decisions. On M3500 + 1 000 false loop closures
+//! (random seeds 1–12, clustered 1–6), whose replays are short, the worst step's median over the
+//! 18 streams moved 7.5 → 6.3 ms back to back and 2.0 → 2.2 ms at `--rate 1000` (no swap waited
+//! either way), within the runs' noise; the same decisions.
 //!
 //! **Cost** (`so2lin stream FILE --json`, robot order, the newest pose read after every step; one
 //! run each, alternating with the build that rebuilt in the step; `benches/MEASUREMENTS.md`,
@@ -103,6 +128,7 @@ pub(super) struct ReplayJob {
     checkpoint_interval: usize,
     doubtful_checkpoints: bool,
     rebuilds_beside: bool,
+    replays_predict: bool,
     /// The checkpoints at or before the replay's start (oldest first): it resumes the latest,
     /// and keeps them all.
     checkpoints: Vec<Checkpoint>,
@@ -110,6 +136,11 @@ pub(super) struct ReplayJob {
     arrivals: Arrivals,
     reuse_paths: bool,
     hints: Option<replay::Hints>,
+    /// The replay keeps the estimate's factors and screens each new loop closure's cycle
+    /// with them ([`super::predict`]), as a live step reading the estimate does, instead of
+    /// deferring them to its end and screening through the factor of P_UU (a rebuild beside:
+    /// module docs, the builder's pace).
+    screens_by_estimate: bool,
 }
 
 impl ReplayJob {
@@ -125,6 +156,7 @@ impl ReplayJob {
                     fresh.checkpoint_interval = self.checkpoint_interval;
                     fresh.doubtful_checkpoints = self.doubtful_checkpoints;
                     fresh.rebuilds_beside = self.rebuilds_beside;
+                    fresh.replays_predict = self.replays_predict;
                     fresh.estimate.push(Op::Defer);
                     fresh
                 }
@@ -138,9 +170,14 @@ impl ReplayJob {
         fresh.replaying = true;
         fresh.reuse_paths = self.reuse_paths;
         fresh.hints = self.hints;
-        // Nobody reads the estimate within the replay: its factors are built once at its end
-        // instead of being kept through every step (deferred from the start above, or by
-        // the checkpoint's copy).
+        // Nobody reads the estimate within the replay: in the step its factors are built once
+        // at its end instead of being kept through every step (deferred from the start above,
+        // or by the checkpoint's copy). A rebuild beside builds them now (from the checkpoint's
+        // graph, or empty) and keeps them, to screen the loop closures with them (module
+        // docs, "the builder's pace").
+        if self.screens_by_estimate {
+            fresh.estimate.sync(&fresh.graph);
+        }
         match fresh.replay_arrivals(self.arrivals) {
             Ok(()) => Ok(fresh),
             Err(error) => {
@@ -213,11 +250,13 @@ impl OnlineEstimator {
             checkpoint_interval: self.checkpoint_interval,
             doubtful_checkpoints: self.doubtful_checkpoints,
             rebuilds_beside: self.rebuilds_beside,
+            replays_predict: self.replays_predict,
             checkpoints: std::mem::take(&mut self.checkpoints),
             room: self.room_for,
             arrivals,
             reuse_paths: self.reuse_paths,
             hints: (self.reuse_paths).then(|| replay::Hints::new(self.paths.clone())),
+            screens_by_estimate: false,
         };
         (job, later)
     }
@@ -272,7 +311,8 @@ impl OnlineEstimator {
     ) {
         let at = self.arrivals + rebuild_lag(self.arrivals - start);
         let here = !self.replayer.ready("so2lin-replay");
-        let (job, later) = self.replay_job(evicted, warm);
+        let (mut job, later) = self.replay_job(evicted, warm);
+        job.screens_by_estimate = self.predicts && self.replays_predict;
         // The checkpoints after the replay's start belong to the lineage it replaces.
         self.worker.retire("so2lin-reorder", later);
         let build = if here {
@@ -487,5 +527,49 @@ mod tests {
             swaps += beside.3;
         }
         assert!(swaps >= 8, "{swaps} rebuilds swapped in: too few to test");
+    }
+
+    /// A rebuild beside screens the loop closures it replays with the estimate's factor, as
+    /// the live steps that read the estimate do (module docs, "the builder's pace"), and
+    /// decides as a replay that screens them through P_UU: the same streams with replays of
+    /// either kind quarantine, re-admit and rebuild at the same steps, and end with the same
+    /// held loop closures, γ and orientations (to 1e-9), while the cycles predicted from the
+    /// estimate's factor (module `predict`) are more by those of the replays. Fails if the
+    /// builder screens through P_UU (no more predictions), or decides otherwise.
+    #[test]
+    fn a_rebuild_beside_screens_with_the_estimates_factor() {
+        let (mut swaps, mut more) = (0, 0);
+        for seed in 0..4u64 {
+            let (edges, _) = wide_outlier_world(seed, false);
+            let run = |predict: bool| {
+                let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+                est.replays_predict = predict;
+                let mut steps = Vec::new();
+                for edge in robot_order(&edges) {
+                    let step = est.add_edge(edge).unwrap();
+                    let rebuilds = est.counters().rebuilds;
+                    steps.push((step.quarantined.len(), step.readmitted, rebuilds));
+                }
+                est.settle();
+                let held: Vec<usize> = est.rejected().iter().map(|r| r.edge).collect();
+                let orientations = est.orientations().unwrap().to_vec();
+                (steps, held, est.gamma(), orientations, est.predicted)
+            };
+            let (by_estimate, by_p_uu) = (run(true), run(false));
+            assert_eq!(by_estimate.0, by_p_uu.0, "seed {seed}: steps");
+            assert_eq!(by_estimate.1, by_p_uu.1, "seed {seed}: held");
+            assert_eq!(by_estimate.2, by_p_uu.2, "seed {seed}: γ");
+            for (a, b) in by_estimate.3.iter().zip(&by_p_uu.3) {
+                assert!((a - b).abs() < 1e-9, "seed {seed}: {a} vs {b}");
+            }
+            assert!(by_estimate.4 >= by_p_uu.4, "seed {seed}");
+            swaps += by_estimate.0.last().map_or(0, |s| s.2);
+            more += by_estimate.4 - by_p_uu.4;
+        }
+        assert!(swaps >= 8, "{swaps} rebuilds swapped in: too few to test");
+        assert!(
+            more >= 100,
+            "{more} more cycles predicted by the replays: too few to test"
+        );
     }
 }
