@@ -345,7 +345,7 @@ pub struct OnlineEstimator {
     /// Whether an eviction's rebuild is made beside the live estimator and swapped in later
     /// ([`rebuild`]; off only to test that it decides as a rebuild in the step).
     rebuilds_beside: bool,
-    /// Whether a rebuild beside screens the loop closures it replays with the estimate's
+    /// Whether a rebuild's replay screens the loop closures it replays with the estimate's
     /// factor when the estimate is read every step ([`rebuild`], "the builder's pace"; off
     /// only to test that it decides as a replay screening through P_UU).
     replays_predict: bool,

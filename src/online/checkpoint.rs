@@ -285,9 +285,9 @@ impl Checkpoint {
     }
 
     /// A copy of this checkpoint's state, ready to replay from: its estimate deferred and
-    /// holding the checkpoint's graph ([`Op::Defer`]; a replay in the step builds the factors
-    /// at its end, one beside at its start: module [`super::rebuild`]), P_γ rebuilt from its
-    /// cycles.
+    /// holding the checkpoint's graph ([`Op::Defer`]; the replay builds the factors at its
+    /// start when the estimate is read every step, otherwise after it: module
+    /// [`super::rebuild`]), P_γ rebuilt from its cycles.
     pub(super) fn resumed(&self) -> OnlineEstimator {
         let mut state = self.state.screening_copy();
         state.model = GammaModel::from_cycles(&state.cycles, &state.sigma2, &state.delta);

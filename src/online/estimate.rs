@@ -11,11 +11,11 @@
 //! the answer is the same bits whenever it is read.
 //!
 //! **Replays.** When the estimator evicts a loop closure it replays the stream without it
-//! into a fresh estimator, whose estimate nobody reads within the replay. A replay beside the
-//! live estimator (module `online::rebuild`) keeps the factors through it all the same, to
-//! screen the replayed loop closures with them as live steps do (module `online::predict`;
-//! faster than through P_UU on large worlds: that module's docs, "the builder's pace"). A
-//! replay in the step (when no builder thread can be started) defers them: its operations
+//! into a fresh estimator, whose estimate nobody reads within the replay. When the estimate is
+//! read every step the replay keeps the factors through it all the same, to screen the
+//! replayed loop closures with them as live steps do (module `online::predict`; faster than
+//! through P_UU on large worlds: module `online::rebuild`, "the builder's pace"). Otherwise
+//! (and in the in-step replays the tests compare with) the replay defers them: its operations
 //! go to the systems' rows only ([`Op::Defer`]), and the factors are built once at the
 //! replay's end ([`Op::Rebuild`]: a fill-reducing order with the newest node last, every
 //! position row at the headings of that moment, as a renewal does), instead of being kept

@@ -4,13 +4,13 @@
 //!
 //! An eviction at arrival `k` rebuilds the estimator by replaying the arrivals since a
 //! checkpoint at `c ≤ k` without the evicted loop closures (module [`super::evict`]): a copy of
-//! the checkpoint, P_γ rebuilt from its cycles, the factor of P_UU rebuilt at its first use,
-//! `k − c` arrivals screened again, the estimate's factors built at the end — 6–12 ms on
-//! M3500 + 1 000 false loop closures, which the step that carried it out waited for. Instead, the
+//! the checkpoint, P_γ rebuilt from its cycles, the estimate's factors built (below, "the
+//! builder's pace"), `k − c` arrivals screened again — 6–12 ms on M3500 + 1 000 false loop
+//! closures (as it was made then), which the step that carried it out waited for. Instead, the
 //! eviction's step hands that work to a builder thread (the renewals' mechanism,
 //! [`super::renewal::Beside`]) and goes on with the live estimator; every later arrival the
 //! live estimator takes is also sent to the builder, which, once it has replayed the arrivals
-//! to `k` and built the estimate's factors (in a fresh order), takes it as a live step would,
+//! to `k` with the estimate's factors, takes it as a live step would,
 //! its estimate brought up to date (when the estimate is read every step,
 //! [`OnlineConfig::estimate_every_step`]; otherwise the factors wait for the first read after
 //! the swap, as the live estimator's changes do). After arrival
@@ -56,10 +56,13 @@
 //! reads the estimate does: with the estimate's factors (module [`super::predict`]: the chord
 //! predicted from the headings' factor, its row then kept or taken back), built when the replay
 //! starts — from the checkpoint's graph, one factorisation, or empty at the first arrival — and
-//! kept through it. A replay in the step (module [`super::evict`], when no builder thread can
-//! be started) defers them and builds them at its end, derived from the replaced estimator's
-//! ([`super::estimate::Estimate::inherit`]), screening through the factor of P_UU meanwhile,
-//! which is cheaper while P_UU is small; but the factor of P_UU fills with a large world's
+//! kept through it (the same job when the collecting step replays, no thread having started).
+//! Until the thirty-second session a replay deferred them (nobody reads them within it) and
+//! screened through the factor of P_UU, as a replay still does when the estimate is not read
+//! every step ([`OnlineConfig::estimate_every_step`] off: the live steps keep no factor either;
+//! built at the first read after the swap, derived from the replaced estimator's,
+//! [`super::estimate::Estimate::inherit`]). P_UU is the cheaper path while it is small;
+//! but the factor of P_UU fills with a large world's
 //! cycles (a long cycle shares edges with many), and its solves with it. On a 50 000-pose world
 //! with 250 false loop closures (`so2lin simulate --poses 50000 --seed 1 --outliers 250`; 12
 //! rebuilds replaying 240 465 arrivals; `so2lin stream FILE --json`, robot order, the newest
@@ -138,8 +141,8 @@ pub(super) struct ReplayJob {
     hints: Option<replay::Hints>,
     /// The replay keeps the estimate's factors and screens each new loop closure's cycle
     /// with them ([`super::predict`]), as a live step reading the estimate does, instead of
-    /// deferring them to its end and screening through the factor of P_UU (a rebuild beside:
-    /// module docs, the builder's pace).
+    /// deferring them to its end and screening through the factor of P_UU (when the estimate
+    /// is read every step: module docs, "the builder's pace").
     screens_by_estimate: bool,
 }
 
@@ -170,11 +173,11 @@ impl ReplayJob {
         fresh.replaying = true;
         fresh.reuse_paths = self.reuse_paths;
         fresh.hints = self.hints;
-        // Nobody reads the estimate within the replay: in the step its factors are built once
-        // at its end instead of being kept through every step (deferred from the start above,
-        // or by the checkpoint's copy). A rebuild beside builds them now (from the checkpoint's
-        // graph, or empty) and keeps them, to screen the loop closures with them (module
-        // docs, "the builder's pace").
+        // Nobody reads the estimate within the replay: its factors are deferred (from the start
+        // above, or by the checkpoint's copy) and built once after it — unless the replay
+        // screens with them (a caller that reads the estimate every step): then they are built
+        // now, from the checkpoint's graph or empty, and kept (module docs, "the builder's
+        // pace").
         if self.screens_by_estimate {
             fresh.estimate.sync(&fresh.graph);
         }
@@ -274,8 +277,8 @@ impl OnlineEstimator {
     }
 
     /// A rebuild's estimate, after the replay of the arrivals before the eviction: its
-    /// factors built now (on the builder, in a fresh order), with the caller's room, and kept
-    /// up to date through the later arrivals ([`Self::replay_later`]), so that the swap finds
+    /// factors (built at the replay's start, or now if it deferred them), with the caller's
+    /// room, kept up to date through the later arrivals ([`Self::replay_later`]), so that the swap finds
     /// them ready — when the estimate is read every step
     /// ([`OnlineConfig::estimate_every_step`]); otherwise built at the first read after the
     /// swap, derived from the live estimator's, as the live estimator's own changes wait for
