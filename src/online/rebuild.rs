@@ -49,8 +49,9 @@
 //! the live estimator steps, and it began behind. At 200 edges a second on a 100 000-pose world
 //! with 500 false loop closures (`so2lin simulate --poses 100000 --seed 1 --outliers 500`),
 //! whose false edges accepted early are evicted tens of thousands of arrivals later, one of 25
-//! swaps waited 3.4 s (a replay of 61 570 arrivals at 0.56 ms each, whose lag of 7 696
-//! arrivals gave it 38.5 s; README, "Not on a 100 000-pose world").
+//! swaps waited 3.4 s in one of two runs (a replay of 61 570 arrivals at 0.56 ms each, whose
+//! lag of 7 696 arrivals gave it 38.5 s; none waited over 4 ms in the other; README, "Not on a
+//! 100 000-pose world" and the paragraph after it).
 //!
 //! **The builder's pace.** The builder screens the loop closures it replays as a live step that
 //! reads the estimate does: with the estimate's factors (module [`super::predict`]: the chord
@@ -73,8 +74,9 @@
 //! 1.53 s against 0.87 s). Back to back that took the steps from 68.0 to 37.4 s and the worst
 //! step, a swap waiting for its builder, from 30.4 to 12.8 s; at `--rate 200` from 21.5 s to
 //! 118 ms; peak RSS 1.84 → 1.01 GB; the same decisions. On the 100 000-pose world at 200 Hz
-//! (one run, against the thirty-first session's): swaps that waited 7–117 s (seven of 25) → one
-//! of 3.4 s, 377 → 101 s of steps, the replays 0.2–0.56 ms an arrival against 0.8–1.7, the same
+//! (two runs, against the thirty-first session's one): swaps that waited 7–117 s (seven of 25)
+//! → one of 3.4 s and none over 4 ms, worst step 117 s → 3.4 s and 65 ms, 377 → 101 and 79 s
+//! of steps, the replays 0.2–0.56 ms an arrival against 0.8–1.7, the same
 //! decisions. On M3500 + 1 000 false loop closures
 //! (random seeds 1–12, clustered 1–6), whose replays are short, the worst step's median over the
 //! 18 streams moved 7.5 → 6.3 ms back to back and 2.0 → 2.2 ms at `--rate 1000` (no swap waited
