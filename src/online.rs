@@ -106,7 +106,8 @@
 //! state. On M3500 with 1 000 false loop closures at 1 000 edges a second no step waits for the
 //! rebuild; back to back, or when the replays are long (a 100 000-pose world with 500 false loop
 //! closures, whose late evictions replay 20 000–167 000 arrivals: one swap of 25 for 3.4 s at
-//! 200 edges a second in one of two runs), the swap's step waits for what the builder has left (module `rebuild`). An evicted edge is re-tested like a
+//! 200 edges a second in one of two runs), the swap's step waits for what the builder has left
+//! (module `rebuild`). An evicted edge is re-tested like a
 //! quarantined one, counting from its eviction, and later replays keep it in quarantine until then
 //! (re-tested at its arrival, it would pass as it first did and be accepted again). At the step
 //! that swaps a rebuild in, [`Step::quarantined`] lists the evicted edges (and any other edge the

@@ -629,7 +629,8 @@ impl OnlineEstimator {
         evicted: &BTreeMap<usize, Held>,
         warm: (f64, f64),
     ) -> Result<Self, OnlineError> {
-        let (job, later) = self.replay_job(evicted, warm);
+        // (In the step: the factors deferred, derived from this one's at the first read.)
+        let (job, later) = self.replay_job(evicted, warm, false);
         match job.run() {
             Ok(mut fresh) => {
                 fresh.replay_done();

@@ -28,7 +28,8 @@
 //! in a backlog, appended to P_UU (or P_UU rebuilt in a fill-reducing order, when they are
 //! many) before anything uses it: a cycle that must be screened by P_UU (some cycle is
 //! ambiguous, so its chord is in `R` with a guessed wrap; the factors are deferred, within a
-//! replay that builds them after it, module `rebuild`; or the new edge would widen a shared factor to two lanes), the second screening, `finish`.
+//! replay that builds them after it, module `rebuild`; or the new edge would widen a shared
+//! factor to two lanes), the second screening, `finish`.
 //! The success bound takes the backlog's conditional deviations as they were when determined.
 //! On city10000 in robot order, the newest pose read after every step, this took the steps
 //! from 1.50–1.54 s to 1.10–1.20 s and the worst step from 4.1–5.6 ms to 1.3–2.0 ms (no P_UU

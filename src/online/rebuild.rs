@@ -229,11 +229,13 @@ impl OnlineEstimator {
     /// `warm` as its scales until it has estimated its own: it starts from a copy of the
     /// latest checkpoint before the first of them (or from nothing), and takes over the
     /// checkpoints at or before it; the later ones are returned (the caller drops them once
-    /// the replay succeeds).
+    /// the replay succeeds). `screens_by_estimate`: it keeps the estimate's factors and
+    /// screens with them (module docs, "the builder's pace").
     pub(super) fn replay_job(
         &mut self,
         evicted: &BTreeMap<usize, Held>,
         warm: (f64, f64),
+        screens_by_estimate: bool,
     ) -> (ReplayJob, Vec<Checkpoint>) {
         let first = evicted.keys().next().copied().unwrap_or(self.arrivals);
         let start = self.replay_start(first);
@@ -261,7 +263,7 @@ impl OnlineEstimator {
             arrivals,
             reuse_paths: self.reuse_paths,
             hints: (self.reuse_paths).then(|| replay::Hints::new(self.paths.clone())),
-            screens_by_estimate: false,
+            screens_by_estimate,
         };
         (job, later)
     }
@@ -280,8 +282,8 @@ impl OnlineEstimator {
 
     /// A rebuild's estimate, after the replay of the arrivals before the eviction: its
     /// factors (built at the replay's start, or now if it deferred them), with the caller's
-    /// room, kept up to date through the later arrivals ([`Self::replay_later`]), so that the swap finds
-    /// them ready — when the estimate is read every step
+    /// room, kept up to date through the later arrivals ([`Self::replay_later`]), so that the
+    /// swap finds them ready — when the estimate is read every step
     /// ([`OnlineConfig::estimate_every_step`]); otherwise built at the first read after the
     /// swap, derived from the live estimator's, as the live estimator's own changes wait for
     /// a read.
@@ -316,8 +318,8 @@ impl OnlineEstimator {
     ) {
         let at = self.arrivals + rebuild_lag(self.arrivals - start);
         let here = !self.replayer.ready("so2lin-replay");
-        let (mut job, later) = self.replay_job(evicted, warm);
-        job.screens_by_estimate = self.predicts && self.replays_predict;
+        let screens = self.predicts && self.replays_predict;
+        let (job, later) = self.replay_job(evicted, warm, screens);
         // The checkpoints after the replay's start belong to the lineage it replaces.
         self.worker.retire("so2lin-reorder", later);
         let build = if here {
