@@ -314,7 +314,9 @@ pub struct OnlineEstimator {
     /// kept within [`evict::REPLAY_BUDGET`] times the arrivals.
     replay_work: usize,
     /// Set while the estimator is being rebuilt by a replay: no examination (no
-    /// nested rebuild); the suspects it counts are examined at the next step.
+    /// nested rebuild); the suspects it counts are examined once, by the builder a few
+    /// arrivals before the swap ([`rebuild`], "the examination before a swap"), or by the
+    /// step after the swap (a replay in the step).
     replaying: bool,
     /// Whether new cycles are screened with the estimate's prediction when it holds exactly
     /// the determined cycles' information ([`OnlineConfig::estimate_every_step`]).
@@ -350,6 +352,13 @@ pub struct OnlineEstimator {
     /// factor when the estimate is read every step ([`rebuild`], "the builder's pace"; off
     /// only to test that it decides as a replay screening through P_UU).
     replays_predict: bool,
+    /// Within a rebuild's replay: the arrival count, a few arrivals before the swap, at which
+    /// its builder examines the suspects due ([`rebuild`], "the examination before a swap");
+    /// `usize::MAX` otherwise.
+    examine_at: usize,
+    /// The loop closures that examination found to evict, with its scales: evicted by the
+    /// step that swaps this estimator in.
+    examined: Option<(BTreeMap<usize, Held>, (f64, f64))>,
 }
 
 /// Cycles whose conditional sd of γ is below this feed the angle noise scale: their nearest
@@ -433,6 +442,8 @@ impl OnlineEstimator {
             replayer: renewal::Worker::default(),
             rebuilds_beside: true,
             replays_predict: true,
+            examine_at: usize::MAX,
+            examined: None,
         })
     }
 

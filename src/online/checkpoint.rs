@@ -241,6 +241,8 @@ impl OnlineEstimator {
             replayer: Default::default(),
             rebuilds_beside: self.rebuilds_beside,
             replays_predict: self.replays_predict,
+            examine_at: usize::MAX,
+            examined: None,
         }
     }
 

@@ -276,6 +276,11 @@ impl OnlineEstimator {
         // not in this step.
         let old = std::mem::replace(self, fresh);
         self.worker.retire("so2lin-reorder", old);
+        // What its builder's examination before the swap found (module `rebuild`, "the
+        // examination before a swap").
+        if let Some((evicted, scales)) = self.examined.take() {
+            self.evict(&evicted, scales, step);
+        }
     }
 
     /// Whether one more replay, of the arrivals from `start` on, stays within
@@ -422,9 +427,27 @@ impl OnlineEstimator {
     /// as e's own: one of the last [`RECENT_FAILURES`] if e's own cycle is doubtful, two of
     /// them otherwise. The reported test and statistic are those of e's own cycle: its angle
     /// when that alone failed, its translation closure otherwise.
+    ///
+    /// Within a rebuild's replay, only at its arrival count `examine_at`, and what it finds is
+    /// kept for the step that swaps the rebuild in (module [`super::rebuild`], "the
+    /// examination before a swap").
     pub(super) fn examine_suspects(&mut self, step: &mut Step) {
-        if !self.evicts() || self.suspects_due.is_empty() {
-            return;
+        if self.replaying {
+            if self.arrivals == self.examine_at && self.evictions_on() {
+                self.examined = self.examination();
+            }
+        } else if self.evicts()
+            && let Some((evicted, scales)) = self.examination()
+        {
+            self.evict(&evicted, scales, step);
+        }
+    }
+
+    /// The examination of [`Self::examine_suspects`]: the loop closures to evict (none: None)
+    /// and the scales it used; the suspects' bars updated.
+    fn examination(&mut self) -> Option<(BTreeMap<usize, Held>, (f64, f64))> {
+        if self.suspects_due.is_empty() {
+            return None;
         }
         let due: Vec<(usize, [Option<Failure>; RECENT_FAILURES])> =
             std::mem::take(&mut self.suspects_due)
@@ -514,7 +537,7 @@ impl OnlineEstimator {
                 self.keep_mates_out(e, &mut evicted);
             }
         }
-        self.evict(&evicted, scales, step);
+        (!evicted.is_empty()).then_some((evicted, scales))
     }
 
     /// The angle residual of suspect e's own cycle `c` (its first term, the chord, standing
@@ -629,8 +652,9 @@ impl OnlineEstimator {
         evicted: &BTreeMap<usize, Held>,
         warm: (f64, f64),
     ) -> Result<Self, OnlineError> {
-        // (In the step: the factors deferred, derived from this one's at the first read.)
-        let (job, later) = self.replay_job(evicted, warm, false);
+        // (In the step: the factors deferred, derived from this one's at the first read; the
+        // suspects due examined by the next step.)
+        let (job, later) = self.replay_job(evicted, warm, false, usize::MAX);
         match job.run() {
             Ok(mut fresh) => {
                 fresh.replay_done();

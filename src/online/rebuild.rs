@@ -30,7 +30,8 @@
 //! Between `k` and `k'` the live estimator still holds the evicted edges — its answers are
 //! exact for the edges it holds, which [`OnlineEstimator::rejected`] and
 //! [`OnlineEstimator::evicting`] tell apart — examines no other suspect (the rebuilt estimator
-//! counts their failures and examines them once swapped in) and takes no checkpoint (the
+//! counts their failures, and its builder examines them before the swap: below) and
+//! takes no checkpoint (the
 //! replay takes its own). [`OnlineEstimator::settle`] swaps a rebuild in progress in at once,
 //! for a caller that wants the decisions on every arrival so far (a stream's end).
 //!
@@ -82,6 +83,36 @@
 //! 18 streams moved 7.5 → 6.3 ms back to back and 2.0 → 2.2 ms at `--rate 1000` (no swap waited
 //! either way), within the runs' noise; the same decisions.
 //!
+//! **The examination before a swap.** A replay examines no suspect (an eviction within it would
+//! need a rebuild of its own), so the suspects whose failures came due while it replayed were
+//! all due when it was swapped in, and the step after the swap examined them at once: hundreds
+//! on a large world (476 and 503 at once on a 50 000-pose world with 250 false loop closures,
+//! steps of 32 and 40 ms; the eviction steps of 52–105 ms on the 100 000-pose world with 500
+//! were such). Now its builder examines them itself, after the later arrival
+//!
+//! ```text
+//! e = k' − min(EXAMINE_AHEAD, (k' − k) / EXAMINE_AHEAD_FRACTION)        (32, 4)
+//! ```
+//!
+//! (in that arrival's step, where a live step examines: before the step's checkpoint) and keeps
+//! what it finds; the step that swaps it in evicts that at once (building the next rebuild's
+//! job). The suspects that come due after `e` wait for the next examination: the live steps'
+//! after the swap, or, when the swap evicts, the next rebuild's builder's (its replay counts
+//! their failures again). So the examination runs on the builder while the live estimator
+//! takes the last arrivals of the lag — 160 ms at 200 Hz, against examinations of up to 93 ms
+//! measured — instead of in a live step (examined right at `k'`, the swap's step would wait
+//! for it: a prototype did, and its steps were as long). A few arrivals, not a share of the
+//! lag: the further `e` is from `k'`, the more suspects come due after it and are decided one
+//! rebuild later. Examined a quarter of the lag early (hundreds to thousands of arrivals on a
+//! large world), the rebuilds took another course on two 100 000-pose worlds, which then kept
+//! 484 of their 500 false loop closures out and held 2 and 1 genuine ones, against 493 and
+//! 496 and none (`benches/MEASUREMENTS.md`, thirty-third session). The count is
+//! fixed when the eviction is decided, so a collecting step that replays for want of a thread
+//! examines at the same point: the same bits. [`OnlineEstimator::settle`] swaps the
+//! evictions such an examination found in as well. The warm-up replay examines too; if the
+//! live estimator goes on past it (module [`super::evict`]), its verdicts are dropped and the
+//! live estimator examines its own suspects due at its next step.
+//!
 //! **Cost** (`so2lin stream FILE --json`, robot order, the newest pose read after every step; one
 //! run each, alternating with the build that rebuilt in the step; `benches/MEASUREMENTS.md`,
 //! thirtieth session). At a sensor's rate the builder is done before `k'`, and the swap's step only
@@ -120,6 +151,13 @@ pub(super) fn rebuild_lag(replayed: usize) -> usize {
     REBUILD_LAG.max(replayed / REBUILD_LAG_FRACTION)
 }
 
+/// The builder examines the suspects due this many arrivals before the swap, at most (module
+/// docs, "the examination before a swap").
+pub(super) const EXAMINE_AHEAD: usize = 32;
+
+/// And at most this fraction of the lag before it (module docs).
+pub(super) const EXAMINE_AHEAD_FRACTION: usize = 4;
+
 /// Each arrival of a replay (by input index), and for the loop closures kept in quarantine
 /// through it (evicted now or before) their rejection and the cycle count of their re-test.
 pub(super) type Arrivals = BTreeMap<usize, (Edge, Option<(RejectedEdge, usize)>)>;
@@ -146,6 +184,9 @@ pub(super) struct ReplayJob {
     /// deferring them to its end and screening through the factor of P_UU (when the estimate
     /// is read every step: module docs, "the builder's pace").
     screens_by_estimate: bool,
+    /// The arrival count after which the replayed estimator examines its suspects (module
+    /// docs, "the examination before a swap"; `usize::MAX`: never).
+    examine_at: usize,
 }
 
 impl ReplayJob {
@@ -175,6 +216,7 @@ impl ReplayJob {
         fresh.replaying = true;
         fresh.reuse_paths = self.reuse_paths;
         fresh.hints = self.hints;
+        fresh.examine_at = self.examine_at;
         // Nobody reads the estimate within the replay: its factors are deferred (from the start
         // above, or by the checkpoint's copy) and built once after it — unless the replay
         // screens with them (a caller that reads the estimate every step): then they are built
@@ -230,12 +272,15 @@ impl OnlineEstimator {
     /// latest checkpoint before the first of them (or from nothing), and takes over the
     /// checkpoints at or before it; the later ones are returned (the caller drops them once
     /// the replay succeeds). `screens_by_estimate`: it keeps the estimate's factors and
-    /// screens with them (module docs, "the builder's pace").
+    /// screens with them (module docs, "the builder's pace"); `examine_at`: the arrival count
+    /// after which it examines the suspects due (module docs, "the examination before a
+    /// swap"; `usize::MAX`: never).
     pub(super) fn replay_job(
         &mut self,
         evicted: &BTreeMap<usize, Held>,
         warm: (f64, f64),
         screens_by_estimate: bool,
+        examine_at: usize,
     ) -> (ReplayJob, Vec<Checkpoint>) {
         let first = evicted.keys().next().copied().unwrap_or(self.arrivals);
         let start = self.replay_start(first);
@@ -264,6 +309,7 @@ impl OnlineEstimator {
             reuse_paths: self.reuse_paths,
             hints: (self.reuse_paths).then(|| replay::Hints::new(self.paths.clone())),
             screens_by_estimate,
+            examine_at,
         };
         (job, later)
     }
@@ -297,7 +343,9 @@ impl OnlineEstimator {
 
     /// A later arrival given to a rebuild (module docs), its estimate brought up to date as a
     /// live step's is by the read after it (when the estimate is read every step). None if it
-    /// fails (the rebuild is dropped).
+    /// fails (the rebuild is dropped). At the arrival count `examine_at` its step examines the
+    /// suspects due, the verdicts kept for the swap (module docs, "the examination before a
+    /// swap").
     fn replay_later(&mut self, edge: Edge) -> Option<()> {
         self.add_edge_inner(edge).ok()?;
         if self.config.estimate_every_step {
@@ -316,10 +364,12 @@ impl OnlineEstimator {
         start: usize,
         warm_up: bool,
     ) {
-        let at = self.arrivals + rebuild_lag(self.arrivals - start);
+        let lag = rebuild_lag(self.arrivals - start);
+        let at = self.arrivals + lag;
         let here = !self.replayer.ready("so2lin-replay");
         let screens = self.predicts && self.replays_predict;
-        let (job, later) = self.replay_job(evicted, warm, screens);
+        let examine_at = at - EXAMINE_AHEAD.min(lag / EXAMINE_AHEAD_FRACTION);
+        let (job, later) = self.replay_job(evicted, warm, screens, examine_at);
         // The checkpoints after the replay's start belong to the lineage it replaces.
         self.worker.retire("so2lin-reorder", later);
         let build = if here {
@@ -401,7 +451,13 @@ impl OnlineEstimator {
             quarantined: Vec::new(),
             readmitted: Vec::new(),
         };
-        self.swap_rebuilt(&mut step);
+        // A swapped-in estimator may evict what its builder's examination found (module docs,
+        // "the examination before a swap"): that rebuild is swapped in too. Its own builder
+        // examines nothing (its examination count lies after every arrival so far), so this
+        // ends after two swaps at most.
+        while self.rebuilding.is_some() {
+            self.swap_rebuilt(&mut step);
+        }
         self.refresh_counters();
         true
     }
@@ -467,7 +523,7 @@ mod tests {
     /// rebuilt estimate's factors) and without (built at the first read after the swap).
     #[test]
     fn a_rebuild_beside_swaps_in_at_its_count_the_same_on_any_thread() {
-        let mut swaps = 0;
+        let (mut swaps, mut chains) = (0, 0);
         for (seed, every_step) in (0..4u64).flat_map(|s| [(s, true), (s, false)]) {
             let (edges, _) = wide_outlier_world(seed, false);
             let config = OnlineConfig {
@@ -479,7 +535,7 @@ mod tests {
                 if !threads {
                     est.replayer = Worker::refusing();
                 }
-                let (mut newest, mut swapped) = (Vec::new(), 0);
+                let (mut newest, mut swapped, mut chained) = (Vec::new(), 0, 0);
                 let mut due: Option<usize> = None;
                 let mut evicting = Vec::new();
                 for (i, edge) in robot_order(&edges).into_iter().enumerate() {
@@ -501,39 +557,114 @@ mod tests {
                                     assert!(held.iter().any(|r| r.edge == e), "seed {seed} {e}");
                                 }
                                 assert_exact(&mut est, &format!("seed {seed} swap {i}"));
+                                // The builder's examination may have evicted again (module
+                                // docs, "the examination before a swap"): checked below.
+                                chained += usize::from(est.evicting().is_some());
                             }
                         }
-                        None => {
-                            assert!(!rebuilt, "seed {seed} arrival {i}: rebuilt in the step");
-                            if let Some((at, evicted)) = est.evicting() {
-                                assert!(at >= i + 1 + REBUILD_LAG, "seed {seed}");
-                                // Still in the graph, and in every answer, until the swap.
-                                for &e in &evicted {
-                                    assert!(est.rejected().iter().all(|r| r.edge != e));
-                                }
-                                evicting = evicted;
-                                due = Some(at);
-                                assert_exact(&mut est, &format!("seed {seed} eviction {i}"));
-                            }
+                        None => assert!(!rebuilt, "seed {seed} arrival {i}: rebuilt in the step"),
+                    }
+                    if due.is_none()
+                        && let Some((at, evicted)) = est.evicting()
+                    {
+                        assert!(at >= i + 1 + REBUILD_LAG, "seed {seed}");
+                        // Still in the graph, and in every answer, until the swap.
+                        for &e in &evicted {
+                            assert!(est.rejected().iter().all(|r| r.edge != e));
                         }
+                        evicting = evicted;
+                        due = Some(at);
+                        assert_exact(&mut est, &format!("seed {seed} eviction {i}"));
                     }
                 }
                 let pending = est.rebuilding.is_some();
                 assert_eq!(est.settle(), pending, "seed {seed}");
+                assert!(
+                    est.evicting().is_none(),
+                    "seed {seed}: settled, a rebuild pending"
+                );
                 assert_exact(&mut est, &format!("seed {seed} settled"));
                 let rejected: Vec<(usize, u64)> = (est.rejected().iter())
                     .map(|r| (r.edge, r.statistic.to_bits()))
                     .collect();
-                (newest, rejected, est.gamma(), swapped)
+                (newest, rejected, est.gamma(), swapped, chained)
             };
             let (beside, here) = (run(true), run(false));
             assert_eq!(beside.0, here.0, "seed {seed}: newest poses");
             assert_eq!(beside.1, here.1, "seed {seed}: quarantined");
             assert_eq!(beside.2, here.2, "seed {seed}: γ");
             assert_eq!(beside.3, here.3, "seed {seed}");
+            assert_eq!(beside.4, here.4, "seed {seed}");
             swaps += beside.3;
+            chains += beside.4;
         }
         assert!(swaps >= 8, "{swaps} rebuilds swapped in: too few to test");
+        assert!(
+            chains >= 1,
+            "no swap evicted again at once: the builder's examination untested"
+        );
+    }
+
+    /// The builder examines the suspects due a few arrivals before the swap (8 here: a
+    /// quarter of the lag of 32), and
+    /// [`OnlineEstimator::settle`] carries out what it found (module docs, "the examination
+    /// before a swap"): a stream stopped between that examination and a swap that evicts again
+    /// at once, then settled, holds the loop closures the swap would have evicted, with no
+    /// rebuild pending, exact. Fails if the builder examined at the swap's arrival (nothing
+    /// found before it) or if `settle` left the second rebuild pending.
+    #[test]
+    fn settle_carries_out_the_builders_examination() {
+        let mut tried = 0;
+        for seed in 0..4u64 {
+            let (edges, _) = wide_outlier_world(seed, false);
+            let edges = robot_order(&edges);
+            let stream = |n: usize| {
+                let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+                for &edge in &edges[..n] {
+                    est.add_edge(edge).unwrap();
+                }
+                est
+            };
+            // The first swap that evicts again at once, in the whole stream.
+            let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+            let mut due = None;
+            let mut chained = None;
+            for (i, &edge) in edges.iter().enumerate() {
+                est.add_edge(edge).unwrap();
+                if due == Some(i + 1) {
+                    if let Some((_, again)) = est.evicting() {
+                        chained = Some((i + 1, again));
+                        break;
+                    }
+                    due = None;
+                }
+                if due.is_none() {
+                    due = est.evicting().map(|(at, _)| at);
+                }
+            }
+            let Some((at, again)) = chained else {
+                continue;
+            };
+            tried += 1;
+            // Stopped one arrival before that swap: settled, the rebuild and the one its
+            // builder's verdicts start are both swapped in.
+            let mut est = stream(at - 1);
+            assert!(est.evicting().is_some(), "seed {seed}");
+            assert!(est.settle(), "seed {seed}");
+            assert!(
+                est.evicting().is_none(),
+                "seed {seed}: a rebuild left pending"
+            );
+            let held = est.rejected();
+            for e in again {
+                assert!(
+                    held.iter().any(|r| r.edge == e),
+                    "seed {seed}: {e} not evicted"
+                );
+            }
+            assert_exact(&mut est, &format!("seed {seed} settled"));
+        }
+        assert!(tried >= 1, "no swap evicted again at once: untested");
     }
 
     /// A rebuild beside screens the loop closures it replays with the estimate's factor, as
