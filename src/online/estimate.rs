@@ -153,10 +153,14 @@ pub(crate) struct Estimate {
     /// positions started (its rows re-linearised then).
     moved_at_renewal: f64,
     /// Re-linearisations of every position row because the headings moved by more than
-    /// [`HEADING_LAG`] ([`Self::after_step`]).
+    /// [`HEADING_LAG`] ([`Self::after_step`]), by the live steps: a rebuilt estimator swapped
+    /// in takes the count of the one it replaces (its builder's own are not counted).
     pub relinearisations: usize,
     /// The positions factor's live work at the last of them ([`RELINEARISE_WORK_PER_NONZERO`]).
     work_at_relinearisation: u64,
+    /// The steps re-linearise no position row ([`Self::hold_positions`]: a replay, whose
+    /// positions nobody reads before its end).
+    positions_held: bool,
 }
 
 /// Live work (entries of the factor visited by the steps' rotations and solves, counted)
@@ -528,6 +532,33 @@ impl Estimate {
         Some((renew, variables, nonzeros))
     }
 
+    /// Hold the position rows' re-linearisations ([`Self::after_step`]) until
+    /// [`Self::release_positions`]: a replay's steps (module `online::rebuild`, "the builder's
+    /// pace"). Its positions are read by nobody before the replay ends, and the steps'
+    /// re-linearisations — a back-substitution, the rows, a forward solve, every few hundred
+    /// arrivals on a large world — were a fifth of a builder's time (`perf`, a 50 000-pose
+    /// world with 250 false loop closures, back to back; `benches/MEASUREMENTS.md`,
+    /// thirty-fourth session). The headings, and so every decision, do not depend on them.
+    pub fn hold_positions(&mut self) {
+        self.positions_held = true;
+    }
+
+    /// The end of [`Self::hold_positions`]: when the factors are built (not deferred), every
+    /// position row re-linearised now at the current headings (rows and right-hand sides at
+    /// once), as the replay's steps would have left them at the latest; a deferred estimate's
+    /// build does it ([`Op::Rebuild`]).
+    pub fn release_positions(&mut self, graph: &PoseGraph) {
+        if !std::mem::take(&mut self.positions_held) || self.builds_later() {
+            return;
+        }
+        self.apply_pending(graph);
+        let edges = self.factors.position_rows();
+        self.factors.relinearise_positions(graph, edges);
+        with_factor!(&mut self.factors, both => both.flush_rhs());
+        self.work_at_relinearisation = self.factors.positions_work().0;
+        self.moved_at_renewal = 0.0;
+    }
+
     /// Whether the two systems share one factor (every edge so far has proportional weights).
     #[cfg(test)]
     pub fn shared(&self) -> bool {
@@ -666,7 +697,7 @@ impl Estimate {
             });
             track_lag(both, event, at_start);
         });
-        if deferred || self.factors.headings_moved() <= HEADING_LAG {
+        if deferred || self.positions_held || self.factors.headings_moved() <= HEADING_LAG {
             return;
         }
         if self.relinearisation_paid(1.0) {

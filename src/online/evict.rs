@@ -248,6 +248,7 @@ impl OnlineEstimator {
         fresh.replay_work = self.replay_work + (self.arrivals - start);
         fresh.rebuild_waits = self.rebuild_waits;
         fresh.counters.rebuilds = self.counters.rebuilds + 1;
+        fresh.estimate.relinearisations = self.estimate.relinearisations;
         fresh.counters.rebuilds_from_checkpoint =
             self.counters.rebuilds_from_checkpoint + usize::from(start > 0);
         // What the replay changed besides the evictions: loop closures held before and

@@ -83,6 +83,18 @@
 //! 18 streams moved 7.5 → 6.3 ms back to back and 2.0 → 2.2 ms at `--rate 1000` (no swap waited
 //! either way), within the runs' noise; the same decisions.
 //!
+//! The replay's steps re-linearise no position row
+//! ([`super::estimate::Estimate::hold_positions`]): nobody reads its positions before its end,
+//! where every row is re-linearised once at the headings of then
+//! ([`OnlineEstimator::build_estimate`]), so that the swapped-in estimator's fast poses start
+//! exact. The headings, and so every decision, do not depend on the position rows. The steps'
+//! re-linearisations (a back-substitution, the rows, a forward solve: every 140 arrivals on a
+//! 50 000-pose world) were a fifth of a builder's time (`perf`); without them, on that world
+//! with 250 false loop closures back to back, the steps that wait for their builders took 29.6
+//! and 28.4 s against 35.8 and 33.5 s, the worst step 9.1 and 8.5 s against 12.4 and 11.2 s (two
+//! runs each, alternating; `benches/MEASUREMENTS.md`, thirty-fourth session); the same
+//! decisions there and on every stream below.
+//!
 //! **The examination before a swap.** A replay examines no suspect (an eviction within it would
 //! need a rebuild of its own), so the suspects whose failures came due while it replayed were
 //! all due when it was swapped in, and the step after the swap examined them at once: hundreds
@@ -221,6 +233,7 @@ impl ReplayJob {
         fresh.reuse_paths = self.reuse_paths;
         fresh.hints = self.hints;
         fresh.examine_at = self.examine_at;
+        fresh.estimate.hold_positions();
         // Nobody reads the estimate within the replay: its factors are deferred (from the start
         // above, or by the checkpoint's copy) and built once after it — unless the replay
         // screens with them (a caller that reads the estimate every step): then they are built
@@ -320,6 +333,7 @@ impl OnlineEstimator {
 
     /// The end of a replay in the step: the estimate's factors are built at the next read.
     pub(super) fn replay_done(&mut self) {
+        self.estimate.release_positions(&self.graph);
         self.estimate.push(Op::Rebuild);
         self.end_replay();
     }
@@ -338,6 +352,7 @@ impl OnlineEstimator {
     /// swap, derived from the live estimator's, as the live estimator's own changes wait for
     /// a read.
     fn build_estimate(&mut self) {
+        self.estimate.release_positions(&self.graph);
         self.estimate.push(Op::Rebuild);
         if self.config.estimate_every_step {
             self.estimate.sync(&self.graph);
@@ -713,5 +728,52 @@ mod tests {
             more >= 100,
             "{more} more cycles predicted by the replays: too few to test"
         );
+    }
+
+    /// A builder's replay re-linearises no position row in its steps and every one at its
+    /// end (module docs, "the builder's pace";
+    /// [`crate::online::estimate::Estimate::hold_positions`]): a replay from the first
+    /// arrival of a stream whose live steps re-linearised the rows has re-linearised none when
+    /// its arrivals are done, and once its estimate is built
+    /// ([`OnlineEstimator::build_estimate`]) every node's fast pose is the exact one, its
+    /// headings exact. Fails if the replay's steps re-linearise, or if nothing re-linearises
+    /// at its end (the fast poses then lag the headings).
+    #[test]
+    fn a_builders_replay_relinearises_the_positions_once_at_its_end() {
+        let (mut tried, mut lagged) = (0, 0);
+        for seed in 0..3u64 {
+            let (edges, _) = wide_outlier_world(seed, false);
+            let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+            for edge in robot_order(&edges).into_iter().take(1200) {
+                est.add_edge(edge).unwrap();
+                est.newest().unwrap();
+            }
+            if est.estimate.relinearisations == 0 {
+                continue;
+            }
+            tried += 1;
+            // Every arrival again, from nothing.
+            est.checkpoints.clear();
+            let (job, _) = est.replay_job(&BTreeMap::new(), (1.0, 1.0), true, usize::MAX);
+            let mut fresh = job.run().map_err(|(e, _)| e).unwrap();
+            assert_eq!(fresh.estimate.relinearisations, 0, "seed {seed}");
+            let nodes: Vec<_> = fresh.graph.nodes().iter().map(|n| n.id).collect();
+            let far = |fresh: &mut OnlineEstimator| {
+                let exact = fresh.poses().unwrap();
+                let mut far = 0.0f64;
+                for (&id, p) in nodes.iter().zip(&exact) {
+                    let fast = fresh.pose(id).unwrap().unwrap();
+                    far = far.max((fast.x - p.x).hypot(fast.y - p.y));
+                    assert!((fast.theta - p.theta).abs() < 1e-9, "seed {seed}");
+                }
+                far
+            };
+            // (Held, the fast poses lag: the test would not see a missing re-linearisation.)
+            lagged += usize::from(far(&mut fresh) > 1e-3);
+            fresh.build_estimate();
+            assert!(far(&mut fresh) < 1e-9, "seed {seed}: the fast poses lag");
+            assert_exact(&mut fresh, &format!("seed {seed}"));
+        }
+        assert!(tried >= 2 && lagged >= 1, "{tried} {lagged}: untested");
     }
 }
