@@ -354,8 +354,8 @@ pub struct OnlineEstimator {
     replays_predict: bool,
     /// Within a rebuild's replay: the arrival count, a few arrivals before the swap, at which
     /// its builder examines the suspects due ([`rebuild`], "the examination before a swap");
-    /// `usize::MAX` otherwise.
-    examine_at: usize,
+    /// None otherwise.
+    examine_at: Option<usize>,
     /// The loop closures that examination found to evict, with its scales: evicted by the
     /// step that swaps this estimator in.
     examined: Option<(BTreeMap<usize, Held>, (f64, f64))>,
@@ -442,7 +442,7 @@ impl OnlineEstimator {
             replayer: renewal::Worker::default(),
             rebuilds_beside: true,
             replays_predict: true,
-            examine_at: usize::MAX,
+            examine_at: None,
             examined: None,
         })
     }

@@ -241,7 +241,7 @@ impl OnlineEstimator {
             replayer: Default::default(),
             rebuilds_beside: self.rebuilds_beside,
             replays_predict: self.replays_predict,
-            examine_at: usize::MAX,
+            examine_at: None,
             examined: None,
         }
     }

@@ -434,7 +434,7 @@ impl OnlineEstimator {
     /// examination before a swap").
     pub(super) fn examine_suspects(&mut self, step: &mut Step) {
         if self.replaying {
-            if self.arrivals == self.examine_at && self.evictions_on() {
+            if self.examine_at == Some(self.arrivals) && self.evictions_on() {
                 self.examined = self.examination();
             }
         } else if self.evicts()
@@ -655,7 +655,7 @@ impl OnlineEstimator {
     ) -> Result<Self, OnlineError> {
         // (In the step: the factors deferred, derived from this one's at the first read; the
         // suspects due examined by the next step.)
-        let (job, later) = self.replay_job(evicted, warm, false, usize::MAX);
+        let (job, later) = self.replay_job(evicted, warm, false, None);
         match job.run() {
             Ok(mut fresh) => {
                 fresh.replay_done();

@@ -201,8 +201,8 @@ pub(super) struct ReplayJob {
     /// is read every step: module docs, "the builder's pace").
     screens_by_estimate: bool,
     /// The arrival count after which the replayed estimator examines its suspects (module
-    /// docs, "the examination before a swap"; `usize::MAX`: never).
-    examine_at: usize,
+    /// docs, "the examination before a swap"; None: never).
+    examine_at: Option<usize>,
 }
 
 impl ReplayJob {
@@ -291,13 +291,13 @@ impl OnlineEstimator {
     /// the replay succeeds). `screens_by_estimate`: it keeps the estimate's factors and
     /// screens with them (module docs, "the builder's pace"); `examine_at`: the arrival count
     /// after which it examines the suspects due (module docs, "the examination before a
-    /// swap"; `usize::MAX`: never).
+    /// swap"; None: never).
     pub(super) fn replay_job(
         &mut self,
         evicted: &BTreeMap<usize, Held>,
         warm: (f64, f64),
         screens_by_estimate: bool,
-        examine_at: usize,
+        examine_at: Option<usize>,
     ) -> (ReplayJob, Vec<Checkpoint>) {
         let first = evicted.keys().next().copied().unwrap_or(self.arrivals);
         let start = self.replay_start(first);
@@ -388,7 +388,7 @@ impl OnlineEstimator {
         let here = !self.replayer.ready("so2lin-replay");
         let screens = self.predicts && self.replays_predict;
         let examine_at = at - EXAMINE_AHEAD.min(lag / EXAMINE_AHEAD_FRACTION);
-        let (job, later) = self.replay_job(evicted, warm, screens, examine_at);
+        let (job, later) = self.replay_job(evicted, warm, screens, Some(examine_at));
         // The checkpoints after the replay's start belong to the lineage it replaces.
         self.worker.retire("so2lin-reorder", later);
         let build = if here {
@@ -754,7 +754,7 @@ mod tests {
             tried += 1;
             // Every arrival again, from nothing.
             est.checkpoints.clear();
-            let (job, _) = est.replay_job(&BTreeMap::new(), (1.0, 1.0), true, usize::MAX);
+            let (job, _) = est.replay_job(&BTreeMap::new(), (1.0, 1.0), true, None);
             let mut fresh = job.run().map_err(|(e, _)| e).unwrap();
             assert_eq!(fresh.estimate.relinearisations, 0, "seed {seed}");
             let nodes: Vec<_> = fresh.graph.nodes().iter().map(|n| n.id).collect();
