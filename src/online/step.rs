@@ -149,7 +149,10 @@ pub struct Counters {
     /// moved by more than the bound on the fast answers' heading lag (1 rad; module
     /// `online::estimate`) since the rows were. Like `estimate_renewals`, it counts the
     /// estimate's work applied so far, which the next read (or loop closure, while the
-    /// estimate is read every step) brings up to date.
+    /// estimate is read every step) brings up to date. The live steps' only: an eviction's
+    /// rebuild, swapped in, goes on from the count of the estimator it replaces (its builder's
+    /// own are not counted: none in the replay, all rows once at its end, and those of the
+    /// arrivals it takes until the swap).
     pub estimate_relinearisations: usize,
     /// Times [`OnlineEstimator::maintain`](super::OnlineEstimator::maintain) renewed the
     /// estimate's factor (on the caller's thread, between steps).
