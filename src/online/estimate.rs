@@ -535,10 +535,9 @@ impl Estimate {
     /// Hold the position rows' re-linearisations ([`Self::after_step`]) until
     /// [`Self::release_positions`]: a replay's steps (module `online::rebuild`, "the builder's
     /// pace"). Its positions are read by nobody before the replay ends, and the steps'
-    /// re-linearisations — a back-substitution, the rows, a forward solve, every few hundred
-    /// arrivals on a large world — were a fifth of a builder's time (`perf`, a 50 000-pose
-    /// world with 250 false loop closures, back to back; `benches/MEASUREMENTS.md`,
-    /// thirty-fourth session). The headings, and so every decision, do not depend on them.
+    /// re-linearisations — a back-substitution, the rows, a forward solve, every 140 arrivals
+    /// on a 50 000-pose world — were a fifth of a builder's time (`perf`, that world with 250
+    /// false loop closures, back to back; `benches/MEASUREMENTS.md`, thirty-fourth session). The headings, and so every decision, do not depend on them.
     pub fn hold_positions(&mut self) {
         self.positions_held = true;
     }
