@@ -558,6 +558,12 @@ impl Estimate {
         self.moved_at_renewal = 0.0;
     }
 
+    /// Whether the steps' re-linearisations are held ([`Self::hold_positions`]).
+    #[cfg(test)]
+    pub fn positions_held(&self) -> bool {
+        self.positions_held
+    }
+
     /// Whether the two systems share one factor (every edge so far has proportional weights).
     #[cfg(test)]
     pub fn shared(&self) -> bool {

@@ -342,6 +342,7 @@ impl OnlineEstimator {
     fn end_replay(&mut self) {
         self.replaying = false;
         self.hints = None;
+        self.examine_at = None;
     }
 
     /// A rebuild's estimate, after the replay of the arrivals before the eviction: its
@@ -736,8 +737,9 @@ mod tests {
     /// arrival of a stream whose live steps re-linearised the rows has re-linearised none when
     /// its arrivals are done, and once its estimate is built
     /// ([`OnlineEstimator::build_estimate`]) every node's fast pose is the exact one, its
-    /// headings exact. Fails if the replay's steps re-linearise, or if nothing re-linearises
-    /// at its end (the fast poses then lag the headings).
+    /// headings exact; a replay in the step ([`OnlineEstimator::replayed`]) ends held neither.
+    /// Fails if the replay's steps re-linearise, if nothing re-linearises at its end (the fast
+    /// poses then lag the headings), or if a replay leaves its steps held.
     #[test]
     fn a_builders_replay_relinearises_the_positions_once_at_its_end() {
         let (mut tried, mut lagged) = (0, 0);
@@ -771,8 +773,20 @@ mod tests {
             // (Held, the fast poses lag: the test would not see a missing re-linearisation.)
             lagged += usize::from(far(&mut fresh) > 1e-3);
             fresh.build_estimate();
+            assert!(!fresh.estimate.positions_held(), "seed {seed}: still held");
             assert!(far(&mut fresh) < 1e-9, "seed {seed}: the fast poses lag");
             assert_exact(&mut fresh, &format!("seed {seed}"));
+            // A replay in the step (factors deferred, built at the first read) lets its steps
+            // re-linearise again too once it is done.
+            let mut inline = est.replayed(&BTreeMap::new(), (1.0, 1.0)).unwrap();
+            assert!(
+                !inline.estimate.positions_held(),
+                "seed {seed}: in the step"
+            );
+            assert!(
+                far(&mut inline) < 1e-9,
+                "seed {seed}: in the step, the fast poses lag"
+            );
         }
         assert!(tried >= 2 && lagged >= 1, "{tried} {lagged}: untested");
     }
