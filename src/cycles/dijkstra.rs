@@ -84,6 +84,8 @@ pub(crate) struct Dijkstra {
     order: Vec<u32>,
     /// Pushes so far in the search in progress.
     seq: u32,
+    /// Nodes settled by every run so far (never paused, unlike [`crate::work`]'s count).
+    settled_total: u64,
 }
 
 impl Dijkstra {
@@ -220,7 +222,12 @@ impl Dijkstra {
         let g = self.generation;
         let mut seq = self.seq;
         let before = self.order.len();
-        let counted = |order: &Vec<u32>| crate::work::searched((order.len() - before) as u64);
+        let total = &mut self.settled_total;
+        let mut counted = |order: &Vec<u32>| {
+            let n = (order.len() - before) as u64;
+            *total += n;
+            crate::work::searched(n);
+        };
         while let Some(Reverse(entry)) = self.heap.pop() {
             let v = entry.node();
             if self.node[v].done == g {
@@ -264,6 +271,11 @@ impl Dijkstra {
         self.seq = seq;
         counted(&self.order);
         Some(false)
+    }
+
+    /// Nodes settled by every run of these work arrays so far.
+    pub(crate) fn settled_total(&self) -> u64 {
+        self.settled_total
     }
 
     /// Whether `v` was settled by the last run.

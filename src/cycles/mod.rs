@@ -544,6 +544,12 @@ impl IncrementalBasis {
         })
     }
 
+    /// Nodes settled by this basis's searches so far (its probes, within a radius or not):
+    /// a caller bounds a run of queries by the difference of two readings.
+    pub fn settled_nodes(&self) -> u64 {
+        self.search.settled_total()
+    }
+
     /// `Σ σ²` of a cycle's path: every term but the probed chord (term 0); edges this basis
     /// does not have count 0.
     pub fn path_weight(&self, cycle: &Cycle) -> f64 {

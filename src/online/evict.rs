@@ -48,6 +48,10 @@
 //! a replay reuses; all replays together are bounded by [`REPLAY_BUDGET`] times the arrivals.
 //! The replay runs beside the live estimator and is swapped in a number of arrivals later fixed
 //! at the eviction (module [`super::rebuild`]).
+//!
+//! A live step examines its due suspects in the order of their edges until its searches have
+//! settled [`EXAMINE_NODES`] nodes; the ones left stay due, for the next step, which examines
+//! them on its graph (one arrival more) with any that came due since.
 
 use std::collections::BTreeMap;
 use std::f64::consts::TAU;
@@ -104,6 +108,28 @@ impl Suspect {
 /// six minutes; on 1 000-pose worlds with 40 false edges a replay at every eviction is cheap
 /// and needed (delaying evictions let a false edge poison 74 genuine ones).
 pub(super) const REPLAY_BUDGET: usize = 8;
+
+/// Nodes the searches of a live step's examination may settle before it takes up no further
+/// suspect ([`OnlineEstimator::examine_suspects`]): the suspects left stay due and are examined
+/// at the next step (with any that came due since, in the order of their edges), so that an
+/// examination of hundreds of suspects is spread over steps instead of stalling one. A
+/// suspect's own searches are not cut short (its verdict would change): a step may exceed the
+/// budget by one suspect's. Counted, not timed, so the run stays deterministic. A builder's
+/// examination before a swap (module [`super::rebuild`]) has none: no robot waits for it.
+pub(super) const EXAMINE_NODES: u64 = 100_000;
+
+/// Tests: a live examination, as (arrivals, suspects taken up, suspects left due).
+#[cfg(test)]
+type Examined = (usize, Vec<usize>, Vec<usize>);
+
+#[cfg(test)]
+thread_local! {
+    /// Tests: the live examinations' budget on this thread instead of [`EXAMINE_NODES`].
+    static EXAMINE_BUDGET: std::cell::Cell<u64> = const { std::cell::Cell::new(EXAMINE_NODES) };
+    /// Tests: each live examination on this thread.
+    static LIVE_EXAMINATIONS: std::cell::RefCell<Vec<Examined>> =
+        const { std::cell::RefCell::new(Vec::new()) };
+}
 
 /// An accepted loop closure on the paths of this many failed cycles is re-examined
 /// ([`OnlineEstimator::examine_suspects`]); the bar doubles after each examination.
@@ -435,18 +461,20 @@ impl OnlineEstimator {
     pub(super) fn examine_suspects(&mut self, step: &mut Step) {
         if self.replaying {
             if self.examine_at == Some(self.arrivals) && self.evictions_on() {
-                self.examined = self.examination();
+                self.examined = self.examination(None);
             }
         } else if self.evicts()
-            && let Some((evicted, scales)) = self.examination()
+            && let Some((evicted, scales)) = self.examination(Some(live_budget()))
         {
             self.evict(&evicted, scales, step);
         }
     }
 
     /// The examination of [`Self::examine_suspects`]: the loop closures to evict (none: None)
-    /// and the scales it used; the suspects' bars updated.
-    fn examination(&mut self) -> Option<(BTreeMap<usize, Held>, (f64, f64))> {
+    /// and the scales it used; the bars of the suspects examined updated. With a `budget`, no
+    /// suspect is taken up once the examination's searches have settled that many nodes: the
+    /// ones left stay due, for the next step ([`EXAMINE_NODES`]).
+    fn examination(&mut self, budget: Option<u64>) -> Option<(BTreeMap<usize, Held>, (f64, f64))> {
         if self.suspects_due.is_empty() {
             return None;
         }
@@ -457,7 +485,19 @@ impl OnlineEstimator {
                 .collect();
         let scales = (self.translation_scale(), self.angle_scale());
         let mut evicted = BTreeMap::new();
+        let start = self.basis.settled_nodes();
+        #[cfg(test)]
+        let mut record = (self.arrivals, Vec::new(), Vec::new());
         for (e, recent) in due {
+            if budget.is_some_and(|b| self.basis.settled_nodes() - start >= b) {
+                // Left for the next step, bar and failures as they are.
+                self.suspects_due.insert(e);
+                #[cfg(test)]
+                record.2.push(e);
+                continue;
+            }
+            #[cfg(test)]
+            record.1.push(e);
             if let Some(s) = self.suspects.get_mut(&e) {
                 s.bar = s.bar.saturating_mul(2);
                 if s.failures >= s.bar {
@@ -537,6 +577,10 @@ impl OnlineEstimator {
                 evicted.insert(input, held);
                 self.keep_mates_out(e, &mut evicted);
             }
+        }
+        #[cfg(test)]
+        if budget.is_some() {
+            LIVE_EXAMINATIONS.with(|l| l.borrow_mut().push(record));
         }
         (!evicted.is_empty()).then_some((evicted, scales))
     }
@@ -693,5 +737,83 @@ impl OnlineEstimator {
             }
         }
         Ok(())
+    }
+}
+
+/// The live examinations' budget ([`EXAMINE_NODES`]; a test's own on its thread).
+fn live_budget() -> u64 {
+    #[cfg(test)]
+    return EXAMINE_BUDGET.with(std::cell::Cell::get);
+    #[cfg(not(test))]
+    EXAMINE_NODES
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::online::replay::tests::wide_outlier_world;
+    use crate::online::{OnlineConfig, robot_order};
+
+    /// A live examination takes up no suspect once its searches have settled its budget of
+    /// nodes, and the suspects it leaves stay due for the next step ([`EXAMINE_NODES`]). With a
+    /// budget of one node every live examination takes up exactly one suspect, and, until an
+    /// eviction begins a rebuild, the next step's examination takes up or leaves every
+    /// suspect the last one left (none dropped); the streams still evict and end exact. Fails
+    /// if the budget is ignored (an examination of several suspects) or the suspects left are
+    /// dropped.
+    #[test]
+    fn an_examination_over_its_budget_leaves_the_rest_to_the_next_step() {
+        EXAMINE_BUDGET.with(|b| b.set(1));
+        let (mut split, mut carried) = (0, 0);
+        for seed in 0..4u64 {
+            let (edges, _) = wide_outlier_world(seed, false);
+            LIVE_EXAMINATIONS.with(|l| l.borrow_mut().clear());
+            let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+            // The arrivals at which a rebuild was in progress or began (their live suspects
+            // are replaced at the swap).
+            let mut rebuilding = std::collections::BTreeSet::new();
+            for edge in robot_order(&edges) {
+                est.add_edge(edge).unwrap();
+                if est.evicting().is_some() {
+                    rebuilding.insert(est.arrivals);
+                }
+            }
+            est.settle();
+            assert!(est.counters.rebuilds > 0, "seed {seed}: nothing evicted");
+            let log = LIVE_EXAMINATIONS.with(|l| std::mem::take(&mut *l.borrow_mut()));
+            for (k, (at, taken, left)) in log.iter().enumerate() {
+                assert_eq!(
+                    taken.len(),
+                    1,
+                    "seed {seed}, arrival {at}: {taken:?} taken up"
+                );
+                if left.is_empty() {
+                    continue;
+                }
+                split += 1;
+                if rebuilding.contains(at) || rebuilding.contains(&(at + 1)) {
+                    continue;
+                }
+                let (next_at, next_taken, next_left) = &log[k + 1];
+                assert_eq!(
+                    *next_at,
+                    at + 1,
+                    "seed {seed}: left at {at}, examined at {next_at}"
+                );
+                for e in left {
+                    assert!(
+                        next_taken.contains(e) || next_left.contains(e),
+                        "seed {seed}: suspect {e} left at {at} dropped"
+                    );
+                }
+                carried += 1;
+            }
+        }
+        EXAMINE_BUDGET.with(|b| b.set(EXAMINE_NODES));
+        assert!(
+            split >= 4,
+            "{split} examinations over budget: too few to test"
+        );
+        assert!(carried >= 2, "{carried} carried over: too few to test");
     }
 }
