@@ -780,6 +780,12 @@ mod tests {
             }
             est.settle();
             assert!(est.counters.rebuilds > 0, "seed {seed}: nothing evicted");
+            let want = crate::estimate::OrientationEstimator::new(est.graph())
+                .unwrap()
+                .orientations(&est.wraps().unwrap());
+            for (a, b) in est.orientations().unwrap().iter().zip(&want) {
+                assert!((a - b).abs() < 1e-9, "seed {seed}: {a} vs {b}");
+            }
             let log = LIVE_EXAMINATIONS.with(|l| std::mem::take(&mut *l.borrow_mut()));
             for (k, (at, taken, left)) in log.iter().enumerate() {
                 assert_eq!(
@@ -794,7 +800,14 @@ mod tests {
                 if rebuilding.contains(at) || rebuilding.contains(&(at + 1)) {
                     continue;
                 }
-                let (next_at, next_taken, next_left) = &log[k + 1];
+                let Some((next_at, next_taken, next_left)) = log.get(k + 1) else {
+                    // Left at the stream's last arrival: no step came after.
+                    assert_eq!(
+                        *at, est.arrivals,
+                        "seed {seed}: left at {at}, never examined"
+                    );
+                    continue;
+                };
                 assert_eq!(
                     *next_at,
                     at + 1,
