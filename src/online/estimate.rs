@@ -513,20 +513,17 @@ impl Estimate {
         if !renew && !self.relinearisation_due() {
             return None;
         }
-        let edges = self.factors.position_rows();
         if renew {
+            let edges = self.factors.position_rows();
             with_factor!(&mut self.factors, both => {
                 both.renew_now(Some(Box::new(relinearise::<3>(graph, edges, 1))));
                 // The rows are at the headings of now, and nothing lags them.
                 both.set_moved(0, 0.0);
             });
+            self.relinearised();
         } else {
-            // The rows and, at once, the factor's right-hand sides: nothing left for a step.
-            self.factors.relinearise_positions(graph, edges);
-            with_factor!(&mut self.factors, both => both.flush_rhs());
+            self.relinearise_now(graph);
         }
-        self.work_at_relinearisation = self.factors.positions_work().0;
-        self.moved_at_renewal = 0.0;
         let (variables, nonzeros) =
             with_factor!(&self.factors, both => (both.len(), both.work_and_nnz().1));
         Some((renew, variables, nonzeros))
@@ -551,9 +548,22 @@ impl Estimate {
             return;
         }
         self.apply_pending(graph);
+        self.relinearise_now(graph);
+    }
+
+    /// Every position row re-linearised at the current headings, rows and the factor's
+    /// right-hand sides at once (nothing left for a step): a caller's idle time
+    /// ([`Self::maintain`]) and the end of a replay ([`Self::release_positions`]).
+    fn relinearise_now(&mut self, graph: &PoseGraph) {
         let edges = self.factors.position_rows();
         self.factors.relinearise_positions(graph, edges);
         with_factor!(&mut self.factors, both => both.flush_rhs());
+        self.relinearised();
+    }
+
+    /// The re-linearisations' schedule counts from here: the live work spacing them
+    /// ([`Self::relinearisation_paid`]) and the heading lag of a renewal in progress.
+    fn relinearised(&mut self) {
         self.work_at_relinearisation = self.factors.positions_work().0;
         self.moved_at_renewal = 0.0;
     }
@@ -708,9 +718,8 @@ impl Estimate {
         if self.relinearisation_paid(1.0) {
             self.factors.relinearise_positions(graph, edges);
             self.relinearisations += 1;
-            self.work_at_relinearisation = self.factors.positions_work().0;
-            // A renewal in progress takes these rows too: its bound counts from here.
-            self.moved_at_renewal = 0.0;
+            // (A renewal in progress takes these rows too: its bound counts from here.)
+            self.relinearised();
         }
     }
 
