@@ -319,6 +319,12 @@ impl Conditioner {
         std::mem::take(&mut self.work)
     }
 
+    /// Entries of L visited by the triangular solves since the last [`Self::take_work`],
+    /// without taking them.
+    pub fn work(&self) -> u64 {
+        self.work
+    }
+
     /// Number of determined cycles |U|.
     pub fn len(&self) -> usize {
         self.diag.len()

@@ -26,7 +26,8 @@
 //!
 //! With the prediction, the P_UU factor is not needed for the new cycle: the cycles determined this way wait
 //! in a backlog, appended to P_UU (or P_UU rebuilt in a fill-reducing order, when they are
-//! many) before anything uses it: a cycle that must be screened by P_UU (some cycle is
+//! more than an eighth of its cycles, or when appending them costs several times what the
+//! rebuild is expected to: [`with_backlog`]) before anything uses it: a cycle that must be screened by P_UU (some cycle is
 //! ambiguous, so its chord is in `R` with a guessed wrap; the factors are deferred, within a
 //! replay that builds them after it, module `rebuild`; or the new edge would widen a shared
 //! factor to two lanes), the second screening, `finish`.
@@ -77,7 +78,9 @@ impl OnlineEstimator {
             return;
         }
         let backlog = std::mem::take(&mut self.backlog);
-        let fresh = with_backlog(&mut self.screener, &self.model, &backlog);
+        let rows = self.screener.cond.len() + backlog.len();
+        let bound = APPEND_BOUND_MARGIN * self.expected_rebuild_work(rows);
+        let fresh = with_backlog(&mut self.screener, &self.model, &backlog, bound);
         if let Some(fresh) = fresh {
             // A renewal in progress describes the replaced factor.
             self.renewal = None;
@@ -90,34 +93,59 @@ impl OnlineEstimator {
 /// estimate's predictions (`backlog`, in their order): appended when they are few against
 /// the cycles it holds, otherwise a factor of all of them in a fill-reducing order, returned
 /// (appending many in chronological order fills L, which is why L is renewed: module docs).
+/// The appends stop once their solves have visited more than `bound` entries of L (a step
+/// passes [`APPEND_BOUND_MARGIN`] times what a rebuild of all of them is expected to cost),
+/// and the factor is rebuilt instead: where P_γ
+/// couples the cycles densely a solve reaches nearly the whole factor, and appending one
+/// cycle to one of 13 400 visited about 0.57 M entries on a 100 000-pose world with 500 false
+/// loop closures, against 34.7 M for rebuilding all 14 760 (`benches/MEASUREMENTS.md`,
+/// thirty-sixth session) — a backlog just under the eighth would have cost a step seconds.
 /// A determination cannot fail here (its conditional variance holds its chord's σ²/4π²); if
 /// one did, the cycles after it would be appended as P_UU decides them.
 pub(super) fn with_backlog(
     screener: &mut Screener,
     model: &GammaModel,
     backlog: &[(u32, i64, f64)],
+    bound: f64,
 ) -> Option<Conditioner> {
     if backlog.is_empty() {
         return None;
     }
-    if backlog.len() > screener.cond.len() / BACKLOG_REBUILD_FRACTION {
+    let rebuilt = |screener: &Screener, rest: &[(u32, i64, f64)]| {
         let mut all = screener.cond.determined();
-        all.extend(backlog.iter().map(|&(c, v, _)| (c as usize, v)));
-        if let Ok(fresh) = Conditioner::rebuilt(model, &all, 0) {
+        all.extend(rest.iter().map(|&(c, v, _)| (c as usize, v)));
+        Conditioner::rebuilt(model, &all, 0).ok()
+    };
+    if backlog.len() > screener.cond.len() / BACKLOG_REBUILD_FRACTION
+        && let Some(fresh) = rebuilt(screener, backlog)
+    {
+        return Some(fresh);
+    }
+    let start = screener.cond.work();
+    for (k, &(c, v, _)) in backlog.iter().enumerate() {
+        if (screener.cond.work() - start) as f64 > bound
+            && let Some(fresh) = rebuilt(screener, &backlog[k..])
+        {
             return Some(fresh);
         }
-    }
-    for &(c, v, _) in backlog {
         let _ = screener.determine(model, c as usize, v);
     }
     None
 }
+
+/// A step's appends of the backlog stop once they have cost this many times what a rebuild is
+/// expected to ([`OnlineEstimator::expected_rebuild_work`]): the expectation runs low where
+/// the factor is dense (5.77 M expected against 34.66 M counted on the 100 000-pose world
+/// with 500 false loop closures, `--seed 2`), and below it appending is left as it was.
+const APPEND_BOUND_MARGIN: f64 = 8.0;
 
 /// [`with_backlog`] rebuilds P_UU when the backlog exceeds the factor's rows over this.
 const BACKLOG_REBUILD_FRACTION: usize = 8;
 
 #[cfg(test)]
 pub(super) mod tests {
+    use super::with_backlog;
+    use crate::gamma::Conditioner;
     use crate::graph::{Edge, Information};
     use crate::online::{OnlineConfig, OnlineEstimator, Step, StepKind, robot_order};
     use crate::sim::{OutlierConfig, OutlierKind, SimConfig, inject_outliers, simulate};
@@ -154,6 +182,46 @@ pub(super) mod tests {
             && rejected(a) == rejected(b)
             && (a.quarantined.iter().zip(&b.quarantined))
                 .all(|(x, y)| close(x.statistic, y.statistic))
+    }
+
+    /// The backlog's appends stop at their bound and the factor is rebuilt from every
+    /// determined cycle instead (module docs): with no bound every cycle is appended; with a
+    /// bound of nothing the first is appended and the rest go to a rebuild holding all of
+    /// them; both hold the same cycles (χ² to 1e-9). Fails if the bound is not checked, or
+    /// if the rebuild leaves a cycle of the backlog out.
+    #[test]
+    fn appending_the_backlog_stops_at_its_bound() {
+        let world = simulate(&SimConfig::new(1500, 33)).unwrap();
+        let config = OnlineConfig {
+            estimate_every_step: false,
+            ..OnlineConfig::default()
+        };
+        let mut est = OnlineEstimator::new(config).unwrap();
+        for edge in stream(world.graph.edges(), 1.0) {
+            est.add_edge(edge).unwrap();
+        }
+        let all = est.screener.cond.determined();
+        // A backlog of a tenth: under the eighth from which it is rebuilt at once.
+        let split = all.len() * 9 / 10;
+        assert!(split > 200 && (all.len() - split) * 8 < split);
+        let backlog: Vec<(u32, i64, f64)> = (all[split..].iter())
+            .map(|&(c, v)| (c as u32, v, 0.0))
+            .collect();
+        let screener = || {
+            let mut s = est.screener.without_conditioner();
+            s.cond = Conditioner::rebuilt(&est.model, &all[..split], 0).unwrap();
+            s
+        };
+        let mut appended = screener();
+        assert!(with_backlog(&mut appended, &est.model, &backlog, f64::INFINITY).is_none());
+        assert_eq!(appended.cond.len(), all.len());
+        let mut bounded = screener();
+        let fresh = with_backlog(&mut bounded, &est.model, &backlog, 0.0)
+            .expect("rebuilt once the first append passed the bound");
+        assert_eq!(bounded.cond.len(), split + 1);
+        assert_eq!(fresh.len(), all.len());
+        let (a, b) = (appended.cond.chi2(), fresh.chi2());
+        assert!(close(a, b), "χ² {a} against {b}");
     }
 
     /// Streams screened by the estimate's prediction decide as those screened by P_UU, step

@@ -213,7 +213,9 @@ impl OnlineEstimator {
             cycles: self.cycles.clone(),
         };
         let mut screener = self.screener.clone();
-        if let Some(fresh) = predict::with_backlog(&mut screener, &self.model, &self.backlog) {
+        if let Some(fresh) =
+            predict::with_backlog(&mut screener, &self.model, &self.backlog, f64::INFINITY)
+        {
             screener.cond = fresh;
         }
         let screened = batch::run_screening(

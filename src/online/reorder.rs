@@ -94,13 +94,8 @@ impl OnlineEstimator {
         if per_row <= REORDER_FILL_RATIO * base.max(1.0) {
             return;
         }
-        // The builder's work in the live factor's units: its solves, expected from the last
-        // one's per determined cycle (at least one solve of the current fill per row), and the
-        // fill-reducing order it computes first, about as long per nonzero of P_γ as
-        // ORDER_WORK_PER_NONZERO entries of a solve (measured on city10000: 10.8 ms for 115 000
-        // nonzeros, against 5 ns per entry).
-        let expected = rows as f64 * self.rebuild_work_per_row.max(per_row)
-            + ORDER_WORK_PER_NONZERO * self.model.nnz() as f64;
+        // The builder's work in the live factor's units.
+        let expected = self.expected_rebuild_work(rows);
         let determined = self.screener.cond.determined();
         if expected <= self.reorder_in_step_work {
             self.reorder_in_step(&determined);
@@ -150,6 +145,17 @@ impl OnlineEstimator {
             }
             None => self.renewal_failed(),
         }
+    }
+
+    /// The work a rebuild of the P_UU factor over `rows` determined cycles is expected to
+    /// cost, in the live factor's units ([`Conditioner::take_work`]): its solves, expected from
+    /// the last renewal's per determined cycle (at least one solve of the live fill per row),
+    /// and the fill-reducing order it computes first, about as long per nonzero of P_γ as
+    /// [`ORDER_WORK_PER_NONZERO`] entries of a solve (measured on city10000: 10.8 ms for
+    /// 115 000 nonzeros, against 5 ns per entry).
+    pub(super) fn expected_rebuild_work(&self, rows: usize) -> f64 {
+        rows as f64 * self.rebuild_work_per_row.max(self.live_fill_per_row())
+            + ORDER_WORK_PER_NONZERO * self.model.nnz() as f64
     }
 
     /// A renewal could not be made (no worker thread, or a rebuild that failed: it cannot for
