@@ -27,8 +27,8 @@
 //! With the prediction, the P_UU factor is not needed for the new cycle: the cycles determined this way wait
 //! in a backlog, appended to P_UU (or P_UU rebuilt in a fill-reducing order, when they are
 //! more than an eighth of its cycles, or when appending them costs several times what the
-//! rebuild is expected to: [`with_backlog`]) before anything uses it: a cycle that must be screened by P_UU (some cycle is
-//! ambiguous, so its chord is in `R` with a guessed wrap; the factors are deferred, within a
+//! rebuild is expected to: [`with_backlog`]) before anything uses it: a cycle that must be
+//! screened by P_UU (some cycle is ambiguous, so its chord is in `R` with a guessed wrap; the factors are deferred, within a
 //! replay that builds them after it, module `rebuild`; or the new edge would widen a shared
 //! factor to two lanes), the second screening, `finish`.
 //! The success bound takes the backlog's conditional deviations as they were when determined.
@@ -95,8 +95,8 @@ impl OnlineEstimator {
 /// (appending many in chronological order fills L, which is why L is renewed: module docs).
 /// The appends stop once their solves have visited more than `bound` entries of L (a step
 /// passes [`APPEND_BOUND_MARGIN`] times what a rebuild of all of them is expected to cost),
-/// and the factor is rebuilt instead: where P_γ
-/// couples the cycles densely a solve reaches nearly the whole factor, and appending one
+/// and the factor is rebuilt instead (once: a rebuild that fails leaves the rest to be
+/// appended). Where P_γ couples the cycles densely a solve reaches nearly the whole factor, and appending one
 /// cycle to one of 13 400 visited about 0.57 M entries on a 100 000-pose world with 500 false
 /// loop closures, against 34.7 M for rebuilding all 14 760 (`benches/MEASUREMENTS.md`,
 /// thirty-sixth session) — a backlog just under the eighth would have cost a step seconds.
@@ -121,12 +121,14 @@ pub(super) fn with_backlog(
     {
         return Some(fresh);
     }
-    let start = screener.cond.work();
+    let (start, mut bound) = (screener.cond.work(), bound);
     for (k, &(c, v, _)) in backlog.iter().enumerate() {
-        if (screener.cond.work() - start) as f64 > bound
-            && let Some(fresh) = rebuilt(screener, &backlog[k..])
-        {
-            return Some(fresh);
+        if (screener.cond.work() - start) as f64 > bound {
+            if let Some(fresh) = rebuilt(screener, &backlog[k..]) {
+                return Some(fresh);
+            }
+            // (A rebuild that failed is not tried again at every later append.)
+            bound = f64::INFINITY;
         }
         let _ = screener.determine(model, c as usize, v);
     }

@@ -213,6 +213,7 @@ impl OnlineEstimator {
             cycles: self.cycles.clone(),
         };
         let mut screener = self.screener.clone();
+        // No bound on the appends: this is no step a robot waits for.
         if let Some(fresh) =
             predict::with_backlog(&mut screener, &self.model, &self.backlog, f64::INFINITY)
         {
