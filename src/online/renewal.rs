@@ -15,7 +15,10 @@
 //! (a step that finds it applying one asks it to leave its state out after that change rather
 //! than take the next: it used to take them all, and the step waited until its queue was empty).
 //! Applying the same changes in the same order to the same state gives the same bits on
-//! either thread, so the answers do not depend on who applied them.
+//! either thread, so the answers do not depend on who applied them. (A build reads no state
+//! but its own, with one exception kept in check: METIS, which splits the graphs of large
+//! renewals, draws from a generator the whole process shares, so its calls are made one at a
+//! time — `estimate::incremental::dissection`.)
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Condvar, Mutex};

@@ -34,6 +34,10 @@
 //! METIS is a C library (the `metis-sys` crate builds it from source; feature `metis`, on by
 //! default; without it no graph is split and the order is minimum degree's); no maintained
 //! Rust crate computes vertex separators of this quality.
+//! Its random generator is the process's, not the thread's (seeded at each call to a fixed
+//! seed), so calls are made one at a time: with two at once — a renewal's builder and a
+//! rebuild's — a separator depended on the threads' timing, and so did the factor's order and
+//! the last bits of the estimate.
 
 use super::factored::{FreePattern, amd_order};
 
@@ -349,11 +353,23 @@ fn separate(
     let mut options = [0 as idx_t; metis_sys::METIS_NOPTIONS as usize];
     let mut part = vec![0 as idx_t; nodes.len()];
     let mut separator_size: idx_t = 0;
+    // One METIS call at a time in the process: METIS draws from one random generator for the
+    // whole process (GKlib's, not the thread's), seeded at the start of each call, so two
+    // calls at once (a renewal's builder and a rebuild's replay, each with its own thread)
+    // would each draw some of the other's numbers and split differently from run to run. Taken
+    // by renewals only (their builders, and a caller's idle time: no step splits a graph); a
+    // poisoned lock guards nothing of
+    // ours, so it is taken anyway.
+    static METIS: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _one_at_a_time = METIS
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     // SAFETY: xadj (nvtxs + 1 offsets) and adjncy are a symmetric graph of nvtxs vertices in
     // METIS's CSR form, without self loops (the diagonal is left out) and with neighbours in
     // 0..nvtxs; options is METIS_NOPTIONS long and set to METIS's defaults (a fixed seed, so
     // the same graph gives the same separator); part has nvtxs entries. METIS reads the graph
-    // and options and writes only separator_size and part.
+    // and options and writes only separator_size and part. No other METIS call runs meanwhile
+    // (the lock above), so its random numbers are its own.
     let status = unsafe {
         metis_sys::METIS_SetDefaultOptions(options.as_mut_ptr());
         metis_sys::METIS_ComputeVertexSeparator(
@@ -553,5 +569,32 @@ mod tests {
             order
         );
         assert!(tree.stale(n0 * 5 / 4 + 1) && !tree.stale(n0 * 5 / 4));
+    }
+    /// Dissections computed on several threads at once are those computed one at a time: METIS
+    /// draws from one random generator for the whole process (GKlib's, seeded at each call),
+    /// so two calls at once would each draw some of the other's numbers and split differently
+    /// — a renewal's builder and a rebuild's, on the 100 000-pose world with 500 false loop
+    /// closures, made the same stream give different factors in different runs. It fails
+    /// without the lock in [`separate`] (most runs: the interleaving is the threads' timing).
+    #[test]
+    fn dissections_on_threads_at_once_are_those_made_alone() {
+        let (w, n) = (96, 96 * 96);
+        let edges = grid(w, w);
+        let alone = dissected_order(n, &edges, &[n - 1], None).0;
+        let threads: Vec<_> = (0..3)
+            .map(|_| {
+                let edges = edges.clone();
+                std::thread::spawn(move || {
+                    (0..6)
+                        .map(|_| dissected_order(n, &edges, &[n - 1], None).0)
+                        .collect::<Vec<_>>()
+                })
+            })
+            .collect();
+        for t in threads {
+            for order in t.join().expect("no panic") {
+                assert!(order == alone, "a dissection made beside another differs");
+            }
+        }
     }
 }
