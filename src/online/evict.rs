@@ -129,6 +129,8 @@ thread_local! {
     /// Tests: each live examination on this thread.
     static LIVE_EXAMINATIONS: std::cell::RefCell<Vec<Examined>> =
         const { std::cell::RefCell::new(Vec::new()) };
+    /// Tests: the examinations of [`OnlineEstimator::settle`] on this thread that evicted.
+    static SETTLE_EVICTIONS: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
 }
 
 /// An accepted loop closure on the paths of this many failed cycles is re-examined
@@ -468,6 +470,23 @@ impl OnlineEstimator {
         {
             self.evict(&evicted, scales, step);
         }
+    }
+
+    /// The examination a stream's end needs ([`Self::settle`]): every suspect due examined now,
+    /// with no budget (no later step takes up the rest), and what it finds evicted. Whether
+    /// that began or carried out a rebuild (false: nothing due, nothing found, or the replays'
+    /// budget spent).
+    pub(super) fn examine_every_due(&mut self, step: &mut Step) -> bool {
+        if !self.evicts() {
+            return false;
+        }
+        let before = (self.counters.rebuilds, self.rebuilding.is_some());
+        if let Some((evicted, scales)) = self.examination(None) {
+            #[cfg(test)]
+            SETTLE_EVICTIONS.with(|n| n.set(n.get() + 1));
+            self.evict(&evicted, scales, step);
+        }
+        (self.counters.rebuilds, self.rebuilding.is_some()) != before
     }
 
     /// The examination of [`Self::examine_suspects`]: the loop closures to evict (none: None)
@@ -828,5 +847,55 @@ mod tests {
             "{split} examinations over budget: too few to test"
         );
         assert!(carried >= 2, "{carried} carried over: too few to test");
+    }
+    /// [`OnlineEstimator::settle`] examines the suspects due that no later step will: a stream
+    /// stopped one arrival before a swap (whose replay counted failures after its builder's
+    /// examination) and settled leaves no suspect whose examination would evict, no rebuild
+    /// pending, and its answers exact; over these streams settle's own examination evicts at
+    /// least once. Fails if settle only swaps (an examination after it still evicts).
+    #[test]
+    fn settle_examines_the_suspects_still_due() {
+        SETTLE_EVICTIONS.with(|n| n.set(0));
+        let mut stops = 0;
+        for seed in 0..4u64 {
+            let (edges, _) = wide_outlier_world(seed, false);
+            let edges = robot_order(&edges);
+            let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+            let mut before_swap = Vec::new();
+            for (i, &edge) in edges.iter().enumerate() {
+                est.add_edge(edge).unwrap();
+                if est.evicting().is_some_and(|(at, _)| at == i + 2) {
+                    before_swap.push(i + 1);
+                }
+            }
+            for n in before_swap {
+                let mut est = OnlineEstimator::new(OnlineConfig::default()).unwrap();
+                for &edge in &edges[..n] {
+                    est.add_edge(edge).unwrap();
+                }
+                assert!(est.settle(), "seed {seed}, {n} arrivals: nothing swapped");
+                assert!(
+                    est.evicting().is_none(),
+                    "seed {seed}, {n}: a rebuild pending"
+                );
+                assert!(
+                    est.examination(None).is_none(),
+                    "seed {seed}, {n} arrivals: settled, a suspect still to evict"
+                );
+                let want = crate::estimate::OrientationEstimator::new(est.graph())
+                    .unwrap()
+                    .orientations(&est.wraps().unwrap());
+                for (a, b) in est.orientations().unwrap().iter().zip(&want) {
+                    assert!((a - b).abs() < 1e-9, "seed {seed}, {n}: {a} vs {b}");
+                }
+                stops += 1;
+            }
+        }
+        assert!(
+            stops >= 8,
+            "{stops} streams stopped before a swap: too few to test"
+        );
+        let evicted = SETTLE_EVICTIONS.with(std::cell::Cell::get);
+        assert!(evicted >= 1, "settle's examination never evicted: untested");
     }
 }
