@@ -462,9 +462,11 @@ impl OnlineEstimator {
     /// swapped in too, until an examination evicts nothing. The estimator is then the last
     /// rebuild's — the evicted loop closures in quarantine from their arrival, every arrival so
     /// far taken again. Whether anything changed (a rebuild swapped in, or a loop closure
-    /// evicted). A recorded log does not hold this call: call it after
-    /// [`Recorder::finish`](crate::log::Recorder::finish), or a replay of the log diverges
-    /// from the call on.
+    /// evicted). Called between two steps of a stream that goes on, it makes the examination
+    /// the next step would have made (the suspects' bars raised as that step's would be), one
+    /// arrival earlier and without its budget. A recorded log does not hold this call: call
+    /// it after [`Recorder::finish`](crate::log::Recorder::finish), or a replay of the log
+    /// diverges from the call on.
     pub fn settle(&mut self) -> bool {
         // (What the swaps changed goes to a step nobody reads: the caller reads `rejected()`.)
         let mut step = Step {
