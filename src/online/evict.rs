@@ -190,16 +190,15 @@ impl OnlineEstimator {
 
     /// Quarantine the accepted loop closures `evicted` (by input index) and rebuild the
     /// estimator without them ([`Self::replayed`]); they are added to `step.quarantined`.
-    /// A replay that fails leaves the estimator as it was.
+    /// A replay that fails leaves the estimator as it was. Whether a rebuild began (beside
+    /// the estimator) or was carried out.
     pub(super) fn evict(
         &mut self,
         evicted: &BTreeMap<usize, Held>,
         scales: (f64, f64),
         step: &mut Step,
-    ) {
-        if !evicted.is_empty() {
-            self.rebuild(evicted, scales, step);
-        }
+    ) -> bool {
+        !evicted.is_empty() && self.rebuild(evicted, scales, step)
     }
 
     /// Once the translation closures have given a noise scale ([`closure::SCALE_MIN_CYCLES`]
@@ -246,8 +245,13 @@ impl OnlineEstimator {
 
     /// Rebuild the estimator by a replay with `evicted` quarantined from their arrival and
     /// `scales` as its warm scales ([`Self::replayed`]). Over [`REPLAY_BUDGET`], or if the
-    /// replay fails, nothing changes.
-    fn rebuild(&mut self, evicted: &BTreeMap<usize, Held>, scales: (f64, f64), step: &mut Step) {
+    /// replay fails, nothing changes. Whether a rebuild began or was carried out.
+    fn rebuild(
+        &mut self,
+        evicted: &BTreeMap<usize, Held>,
+        scales: (f64, f64),
+        step: &mut Step,
+    ) -> bool {
         let first = evicted.keys().next().copied().unwrap_or(self.arrivals);
         let start = self.replay_start(first);
         if !self.may_replay(start) {
@@ -255,12 +259,16 @@ impl OnlineEstimator {
             // their failures keep counting). Deferring the examination until the budget
             // allows instead was tried: on one of the simulated worlds of
             // `tests/quarantine.rs` a false edge then poisoned 74 genuine ones.
-            return;
+            return false;
         }
         if self.rebuilds_beside {
             self.rebuild_beside(evicted, scales, start, false);
+            self.rebuilding.is_some()
         } else if let Ok(fresh) = self.replayed(evicted, scales) {
             self.take_over(fresh, evicted, start, step);
+            true
+        } else {
+            false
         }
     }
 
@@ -465,28 +473,27 @@ impl OnlineEstimator {
             if self.examine_at == Some(self.arrivals) && self.evictions_on() {
                 self.examined = self.examination(None);
             }
-        } else if self.evicts()
-            && let Some((evicted, scales)) = self.examination(Some(live_budget()))
-        {
-            self.evict(&evicted, scales, step);
+        } else {
+            self.examine_and_evict(Some(live_budget()), step);
         }
     }
 
-    /// The examination a stream's end needs ([`Self::settle`]): every suspect due examined now,
-    /// with no budget (no later step takes up the rest), and what it finds evicted. Whether
-    /// that began or carried out a rebuild (false: nothing due, nothing found, or the replays'
-    /// budget spent).
-    pub(super) fn examine_every_due(&mut self, step: &mut Step) -> bool {
+    /// The examination of the suspects due by a live estimator, and the eviction of what it
+    /// finds: a step's within its `budget` ([`Self::examine_suspects`]), a stream's end's with
+    /// none (no later step takes up the rest: [`Self::settle`]). Whether a rebuild began or was
+    /// carried out (false: nothing due, nothing found, or the replays' budget spent).
+    pub(super) fn examine_and_evict(&mut self, budget: Option<u64>, step: &mut Step) -> bool {
         if !self.evicts() {
             return false;
         }
-        let before = (self.counters.rebuilds, self.rebuilding.is_some());
-        if let Some((evicted, scales)) = self.examination(None) {
-            #[cfg(test)]
+        let Some((evicted, scales)) = self.examination(budget) else {
+            return false;
+        };
+        #[cfg(test)]
+        if budget.is_none() {
             SETTLE_EVICTIONS.with(|n| n.set(n.get() + 1));
-            self.evict(&evicted, scales, step);
         }
-        (self.counters.rebuilds, self.rebuilding.is_some()) != before
+        self.evict(&evicted, scales, step)
     }
 
     /// The examination of [`Self::examine_suspects`]: the loop closures to evict (none: None)

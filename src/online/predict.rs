@@ -95,8 +95,8 @@ impl OnlineEstimator {
 /// (appending many in chronological order fills L, which is why L is renewed: module docs).
 /// The appends stop once their solves have visited more than `bound` entries of L (a step
 /// passes [`APPEND_BOUND_MARGIN`] times what a rebuild of all of them is expected to cost),
-/// and the factor is rebuilt instead (once: a rebuild that fails leaves the rest to be
-/// appended). Where P_γ couples the cycles densely a solve reaches nearly the whole factor, and appending one
+/// and the factor is rebuilt instead (once: a rebuild that fails, there or before the appends,
+/// leaves the rest to be appended). Where P_γ couples the cycles densely a solve reaches nearly the whole factor, and appending one
 /// cycle to one of 13 400 visited about 0.57 M entries on a 100 000-pose world with 500 false
 /// loop closures, against 34.7 M for rebuilding all 14 760 (`benches/MEASUREMENTS.md`,
 /// thirty-sixth session) — a backlog just under the eighth would have cost a step seconds.
@@ -116,14 +116,17 @@ pub(super) fn with_backlog(
         all.extend(rest.iter().map(|&(c, v, _)| (c as usize, v)));
         Conditioner::rebuilt(model, &all, 0).ok()
     };
-    if backlog.len() > screener.cond.len() / BACKLOG_REBUILD_FRACTION
-        && let Some(fresh) = rebuilt(screener, backlog)
-    {
-        return Some(fresh);
+    let mut bound = bound;
+    if backlog.len() > screener.cond.len() / BACKLOG_REBUILD_FRACTION {
+        match rebuilt(screener, backlog) {
+            Some(fresh) => return Some(fresh),
+            // (A rebuild that failed is not tried again at the bound.)
+            None => bound = f64::INFINITY,
+        }
     }
-    let (start, mut bound) = (screener.cond.work(), bound);
+    let start = screener.cond.work();
     for (k, &(c, v, _)) in backlog.iter().enumerate() {
-        if (screener.cond.work() - start) as f64 > bound {
+        if screener.cond.work().saturating_sub(start) as f64 > bound {
             if let Some(fresh) = rebuilt(screener, &backlog[k..]) {
                 return Some(fresh);
             }
