@@ -749,13 +749,21 @@ impl OnlineEstimator {
         self.counters.determined = self.screener.cond.len() + self.backlog.len();
         self.counters.ambiguous = self.ambiguous.len();
         self.counters.inconsistent = self.screener.inconsistent_count();
-        let (renewals, waits) = self.estimate.renewals();
-        self.counters.estimate_renewals = renewals;
-        self.counters.renewal_waits = waits + self.cond_waits;
         self.counters.rebuild_waits = self.rebuild_waits;
-        self.counters.estimate_relinearisations = self.estimate.relinearisations;
-        self.counters.maintenance_renewals = self.estimate.renewed_now();
         self.counters.replayed_arrivals = self.replay_work;
+        let mut counters = self.counters;
+        self.estimate_counters(&mut counters);
+        self.counters = counters;
+    }
+
+    /// The counters of the estimate's factor as they are now (a read applies the steps'
+    /// operations to it after [`Self::add_edge`] returned).
+    fn estimate_counters(&self, counters: &mut Counters) {
+        let (renewals, waits) = self.estimate.renewals();
+        counters.estimate_renewals = renewals;
+        counters.renewal_waits = waits + self.cond_waits;
+        counters.estimate_relinearisations = self.estimate.relinearisations;
+        counters.maintenance_renewals = self.estimate.renewed_now();
     }
 }
 

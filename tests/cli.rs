@@ -468,7 +468,10 @@ fn stream_traces_every_step() {
     let mut lines = text.lines();
     assert_eq!(
         lines.next(),
-        Some("step,edge,kind,ns,search_nodes,estimate_entries,conditioning_entries,rebuilding")
+        Some(
+            "step,edge,kind,ns,search_nodes,estimate_entries,conditioning_entries,rebuilding,\
+             renewed,renewal_waited,relinearised"
+        )
     );
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     let n = v["latency_us"]["all"]["count"].as_u64().unwrap() as usize;
@@ -479,8 +482,10 @@ fn stream_traces_every_step() {
     assert!(edges.iter().enumerate().all(|(i, &e)| e == i as u64));
     let (mut tree, mut quarantined, mut rebuilding, mut ns) = (0, 0, 0, 0u64);
     let mut work = [0u64; 3];
+    // Renewals collected, steps that waited for one, re-linearisations.
+    let mut factor = [0u64; 3];
     for (k, r) in rows.iter().enumerate() {
-        assert_eq!((r.len(), num(r, 0)), (8, k as u64), "{r:?}");
+        assert_eq!((r.len(), num(r, 0)), (11, k as u64), "{r:?}");
         match r[2] {
             "tree" => tree += 1,
             "quarantined" => quarantined += 1,
@@ -491,7 +496,18 @@ fn stream_traces_every_step() {
             *w += num(r, i);
         }
         rebuilding += num(r, 7);
+        for (f, i) in factor.iter_mut().zip(8..11) {
+            *f += num(r, i);
+        }
     }
+    for (f, key) in factor.iter().zip([
+        "estimate_renewals",
+        "renewal_waits",
+        "estimate_relinearisations",
+    ]) {
+        assert_eq!(Some(*f), v[key].as_u64(), "{key}: {v}");
+    }
+    assert!(factor[0] > 0 && factor[2] > 0, "{factor:?}");
     assert_eq!(tree, v["latency_us"]["tree"]["count"].as_u64().unwrap());
     assert!(
         quarantined > 0,

@@ -15,9 +15,14 @@ use crate::graph::{NodeId, Pose2, PoseGraph};
 use crate::screening::{Hypothesis, rounding_success};
 
 impl OnlineEstimator {
-    /// Counters of the run so far.
+    /// Counters of the run so far. Those of the estimate's factor (renewals, the steps that
+    /// waited for one, re-linearisations, renewals in idle time) are read as they are now, so
+    /// after a step's read ([`Self::newest`], [`Self::pose`], ...) they include what that read
+    /// applied; the others are those of the last [`Self::add_edge`].
     pub fn counters(&self) -> Counters {
-        self.counters
+        let mut counters = self.counters;
+        self.estimate_counters(&mut counters);
+        counters
     }
 
     /// The graph so far: the accepted edges, in the order they were added (quarantined loop

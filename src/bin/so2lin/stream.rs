@@ -63,16 +63,20 @@ pub struct StreamArgs<'a> {
 /// file's order: the index `rejected_edges` gives), its kind (`tree`, `cycle`, `quarantined`),
 /// its time in ns (the add_edge and the read `--estimate` asks for, as in `latency_us`), its
 /// counted work (search nodes settled, estimate factor entries, P_UU factor entries: the same
-/// in every run), and whether an eviction's rebuild was in progress beside the estimator after
-/// it (`OnlineEstimator::evicting`: its swap is a later step).
+/// in every run), whether an eviction's rebuild was in progress beside the estimator after
+/// it (`OnlineEstimator::evicting`: its swap is a later step), and what the estimate's factor
+/// did in it, from the step's change in `Counters`: `renewed` (a renewal of its order
+/// collected), `renewal_waited` (the step waited for that renewal's builder) and
+/// `relinearised` (the headings solved and every position row rewritten at them; the
+/// factor's right-hand sides follow at the next step, a forward solve counted in its work).
+/// `OnlineEstimator::counters` reads these after the step's read, which applies them.
 struct Trace {
     out: std::io::BufWriter<std::fs::File>,
     path: std::path::PathBuf,
 }
 
 impl Trace {
-    const HEADER: &'static str =
-        "step,edge,kind,ns,search_nodes,estimate_entries,conditioning_entries,rebuilding";
+    const HEADER: &'static str = "step,edge,kind,ns,search_nodes,estimate_entries,conditioning_entries,rebuilding,renewed,renewal_waited,relinearised";
 
     fn create(path: &Path) -> Result<Self, String> {
         let file =
@@ -233,6 +237,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     let mut max_lag = std::time::Duration::ZERO;
     let mut maintenance = MaintenanceCost::default();
     let mut trace = args.trace.map(Trace::create).transpose()?;
+    let mut counted = est.counters();
     for (k, &edge) in edges.iter().enumerate() {
         if let Some(hz) = args.rate {
             let arrival = std::time::Duration::from_secs_f64(k as f64 / hz);
@@ -284,14 +289,20 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
                 StepKind::Cycle(_) => "cycle",
                 StepKind::Quarantined => "quarantined",
             };
+            let now = est.counters();
             t.line(format_args!(
-                "{k},{},{kind},{ns},{},{},{},{}",
+                "{k},{},{kind},{ns},{},{},{},{},{},{},{}",
                 file_index[k],
                 w.search_nodes,
                 w.estimate_entries,
                 w.conditioning_entries,
                 u8::from(est.evicting().is_some()),
+                now.estimate_renewals
+                    .saturating_sub(counted.estimate_renewals),
+                now.renewal_waits.saturating_sub(counted.renewal_waits),
+                (now.estimate_relinearisations).saturating_sub(counted.estimate_relinearisations),
             ))?;
+            counted = now;
         }
         all.push(ns);
         match step.kind {
