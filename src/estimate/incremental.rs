@@ -43,10 +43,12 @@
 mod dissection;
 mod factored;
 mod rotate;
+mod spread;
 
 pub(crate) use dissection::{Dissection, dissected_order};
 pub(crate) use factored::{amd_order, fill_reducing_order};
 use rotate::{Undo, align, drop_zeros};
+use spread::Spread;
 
 /// The off-diagonal entries of a row of R (or of a row being rotated in): positions
 /// ascending, and their values apart from them, so that a rotation's arithmetic runs over
@@ -194,6 +196,8 @@ pub(crate) struct SqrtInfo<const K: usize, const L: usize = 1> {
     undo: Option<Box<Undo<K, L>>>,
     /// Whether the rotation in progress records into `undo`.
     recording: bool,
+    /// A forward solve of new right-hand sides spread over steps (module `spread`).
+    spread: Option<Box<Spread<K, L>>>,
 }
 
 /// What rotating a row `aᵀx = β` into R leaves ([`SqrtInfo::try_row`]): the part of each
@@ -250,6 +254,7 @@ impl<const K: usize, const L: usize> Default for SqrtInfo<K, L> {
             gains_valid: false,
             undo: None,
             recording: false,
+            spread: None,
         }
     }
 }
@@ -320,6 +325,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         self.rows.push(Row::default());
         self.d.push([0.0; K]);
         self.x.push(0.0);
+        self.spread_push();
     }
 
     /// Move the right-hand side of the last row added by `Δβ`, when no row was added or
@@ -331,6 +337,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         if !self.gains_valid {
             return false;
         }
+        self.spread_shift_last(delta);
         for &(k, g) in &self.gains {
             let dk = &mut self.d[k as usize];
             for q in 0..K {
@@ -342,6 +349,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
 
     /// Change the right-hand side of an existing row `a` by `Δβ`: `d ← d + R⁻ᵀ a Δβ`.
     pub fn shift_rhs<C: Lanes<L>>(&mut self, entries: &[(usize, C)], delta: [f64; K]) {
+        self.spread_shift_other(delta);
         self.forward(entries, |dk, y| {
             for (q, (dq, &sq)) in dk.iter_mut().zip(&delta).enumerate() {
                 *dq += y[lane::<L>(q)] * sq;
@@ -561,6 +569,26 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         self.reset_rhs_in(from..K, rows);
     }
 
+    /// `g = Σ_r a_r β_r` in the right-hand sides `columns`, by position (zero in the others):
+    /// what a forward solve `Rᵀ d = g` starts from.
+    fn information<const N: usize, C: Lanes<L>>(
+        &self,
+        columns: std::ops::Range<usize>,
+        rows: impl IntoIterator<Item = ([(usize, C); N], [f64; K])>,
+    ) -> Vec<[f64; K]> {
+        let mut g = vec![[0.0; K]; self.len()];
+        for (entries, beta) in rows {
+            for (v, a) in entries {
+                let p = self.pos_of[v] as usize;
+                let a = a.lanes();
+                for q in columns.clone() {
+                    g[p][q] += a[lane::<L>(q)] * beta[q];
+                }
+            }
+        }
+        g
+    }
+
     /// [`Self::reset_rhs`] for the right-hand sides `columns` only (the others are kept).
     pub fn reset_rhs_in<const N: usize, C: Lanes<L>>(
         &mut self,
@@ -570,16 +598,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         let (from, to) = (columns.start.min(K), columns.end.min(K));
         let n = self.len();
         crate::work::estimated((n + self.nnz) as u64);
-        let mut g = vec![[0.0; K]; n];
-        for (entries, beta) in rows {
-            for (v, a) in entries {
-                let p = self.pos_of[v] as usize;
-                let a = a.lanes();
-                for q in from..to {
-                    g[p][q] += a[lane::<L>(q)] * beta[q];
-                }
-            }
-        }
+        let mut g = self.information(from..to, rows);
         for k in 0..n {
             let mut dk = g[k];
             for (q, v) in dk.iter_mut().enumerate().take(to).skip(from) {

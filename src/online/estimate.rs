@@ -44,8 +44,10 @@
 //! that starts a renewal pays no back-substitution), and at the step at which a bound on how
 //! far the headings have moved since the rows were linearised passes [`HEADING_LAG`] — the
 //! rows rewritten at that step's headings (one back-substitution), the factor's right-hand
-//! sides recomputed from them at the end of the next step (one forward solve:
-//! [`Laplacian::relinearise`]), so that no step pays for both passes over the factor: each
+//! sides recomputed from them over the next steps (one forward solve spread over about 16
+//! steps, a block of positions each, while rows keep being rotated in:
+//! [`Laplacian::relinearise`], module `estimate::incremental::spread`), so that no step pays
+//! for both passes over the factor, nor for a whole forward solve: each
 //! heading row added, or measurement moved, changes the headings by a potential driven between
 //! its two ends, which by the maximum principle moves no node by more than it moves the edge's
 //! own difference `θ_b − θ_a` — known from the rotations (`(δ − (θ̂_b − θ̂_a))(1 − Πc²)`,
@@ -179,7 +181,7 @@ const RELINEARISE_ALLOWANCE: u64 = 1 << 20;
 
 /// The bound on how far the headings may have moved since the position rows were
 /// linearised (rad) beyond which every position row is re-linearised at the current headings
-/// (module docs: positions; the factor takes them at the end of the next step). The bound
+/// (module docs: positions; the factor takes them over the next steps). The bound
 /// adds up every row's movement, so it is loose; measured (`so2lin stream FILE --json`, robot
 /// order, the newest pose read, against no such bound): at 1 rad the newest pose's distance to the exact one, sampled every 25
 /// steps, went on MIT from 35 m on average (89 m at worst) to 2.3 m (5.6), on M3500 from

@@ -638,12 +638,15 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     }
 
     /// Rewrite the rows' measurements by `relinearise`, and the factor's right-hand sides
-    /// `from..K` with them at the end of the next step ([`Self::after_step`]: a forward
-    /// solve, so that no step pays for both it and the back-substitution that gave the
-    /// headings); until then the factor answers with the rows as they were. The factor's
-    /// order and values stay.
+    /// `from..K` with them over the next steps ([`Self::after_step`]: a forward solve spread
+    /// over about 16 of them (`SPREAD_STEPS`), a block of positions each, so that no step pays
+    /// for a whole pass over the factor, nor for both it and the back-substitution that gave
+    /// the headings: module `estimate::incremental::spread`); until it ends the factor answers
+    /// with the rows as they were. The factor's order and values stay.
     pub fn relinearise(&mut self, relinearise: impl FnOnce(&mut [[f64; K]]), from: usize) {
         relinearise(&mut self.rows.y);
+        // A spread in progress solved for the rows' old measurements.
+        self.factor.spread_cancel();
         let from = from.min(K);
         self.stale_rhs = Some(self.stale_rhs.map_or(from, |f| f.min(from)));
         self.last_edge = None;
@@ -653,8 +656,28 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         }
     }
 
+    /// Advance the spread forward solve of the right-hand sides a [`Self::relinearise`] left
+    /// lagging by one block (starting it, or starting it again when something it does not
+    /// follow changed the factor); they are current when it ends.
+    fn advance_rhs(&mut self) {
+        let Some(from) = self.stale_rhs else {
+            return;
+        };
+        if !self.factor.spreading(from) {
+            let rows = &self.rows;
+            (self.factor).spread_start(
+                from,
+                (0..rows.ends.len()).map(|e| (rows.entries(e), rows.rhs(e))),
+            );
+        }
+        if self.factor.spread_advance() {
+            self.stale_rhs = None;
+        }
+    }
+
     /// Recompute the right-hand sides a [`Self::relinearise`] left lagging, now.
     pub fn flush_rhs(&mut self) {
+        self.factor.spread_cancel();
         if let Some(from) = self.stale_rhs.take() {
             // The last row's gains stay valid: d is the same linear function of the rows'
             // right-hand sides, recomputed.
@@ -805,34 +828,39 @@ mod tests {
         assert!(far.deferred());
     }
 
+    /// A chain of `n` nodes with a loop closure of `span` nodes at every `every`-th node from
+    /// `span` on.
+    fn chain_with_closures(n: usize, every: usize, span: usize) -> Laplacian<3> {
+        let mut l = Laplacian::<3>::default();
+        l.add_node();
+        for v in 1..n {
+            l.add_node();
+            l.add_edge(v - 1, v, 4.0, [0.01, 1.0, 0.0]);
+            if v % every == 0 && v > span {
+                l.add_edge(v - span, v, 2.0, [0.25, 0.5, 19.0]);
+            }
+        }
+        l
+    }
+
+    /// A re-linearisation's job: every position measurement turned by 0.3 rad.
+    fn turned(y: &mut [[f64; 3]]) {
+        let (s, c) = 0.3f64.sin_cos();
+        for r in y.iter_mut() {
+            let [x, y] = [r[1], r[2]];
+            (r[1], r[2]) = (c * x - s * y, s * x + c * y);
+        }
+    }
+
     /// A re-linearisation rewrites the rows at once and their right-hand sides at the end of
-    /// the next step: in between the factor answers as before it (the headings' column
-    /// untouched throughout), after it as a re-linearisation applied at once — with rows
-    /// rotated in between, and for a factor widened to two lanes while it lags.
+    /// the next step when the factor is small (one block of the spread forward solve: a
+    /// larger one is the next test's): in between the factor answers as before it (the
+    /// headings' column untouched throughout), after it as a re-linearisation applied at once
+    /// — with rows rotated in between, and for a factor widened to two lanes while it lags.
     #[test]
     fn a_relinearisation_lands_at_the_next_step() {
-        let build = || {
-            let mut l = Laplacian::<3>::default();
-            l.add_node();
-            for v in 1..300usize {
-                l.add_node();
-                l.add_edge(v - 1, v, 4.0, [0.01, 1.0, 0.0]);
-                if v % 7 == 0 && v > 20 {
-                    l.add_edge(v - 20, v, 2.0, [0.25, 0.5, 19.0]);
-                }
-            }
-            l
-        };
-        // Every position measurement turned by 0.3 rad.
-        let job = || {
-            |y: &mut [[f64; 3]]| {
-                for r in y.iter_mut() {
-                    let (s, c) = 0.3f64.sin_cos();
-                    let [x, y] = [r[1], r[2]];
-                    (r[1], r[2]) = (c * x - s * y, s * x + c * y);
-                }
-            }
-        };
+        let build = || chain_with_closures(300, 7, 20);
+        let job = || turned;
         let close = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-9);
         let (mut now, mut later) = (build(), build());
         let before: Vec<Vec<f64>> = (0..3).map(|q| later.all(q)).collect();
@@ -865,6 +893,115 @@ mod tests {
             !close(&later.all(1), &before[1]),
             "the positions did not move"
         );
+    }
+
+    /// A re-linearisation's right-hand sides computed a block of positions per step, while
+    /// every kind of change goes on (new nodes and chains, loop closures added, tried and kept,
+    /// tried and taken back, the last row's measurement moved; an older row's moved, or the
+    /// last row's after the solve moved on, which start it again; a widening to two lanes) end equal to those of one forward solve
+    /// made at once before the same changes; and they take several steps, during which the
+    /// answers are the old rows' (the positions do not move until the end).
+    #[test]
+    fn a_relinearisation_spread_over_steps_ends_where_one_at_once_does() {
+        let build = || {
+            let mut l = chain_with_closures(3000, 5, 290);
+            // No renewal collected: the spread, not a renewed factor, brings the new sides.
+            l.set_renewal_delay(f64::INFINITY);
+            l
+        };
+        let job = || turned;
+        let close = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-9);
+        // One step's changes, the same in both; `step` picks which.
+        fn changes<const L: usize>(l: &mut Laplacian<3, L>, step: usize, w: [f64; L]) {
+            if step == 6 {
+                // The last row's measurement, after the spread moved on: it starts again.
+                let e = l.edge_count() - 1;
+                let y = l.y(e);
+                l.set_y(e, [y[0], y[1] + 1.0, y[2]]);
+            }
+            let v = l.add_node();
+            l.add_edge(v - 1, v, w, [0.02, 1.0, 0.1]);
+            match if step == 2 { 4 } else { step % 4 } {
+                0 => l.add_edge(v - 700, v, w, [0.1, 2.0, -3.0]),
+                1 => {
+                    assert!(l.try_edge(v - 1200, v, w, [0.3, 0.0, 0.0]).is_some());
+                    l.keep_edge();
+                    // Its position row, through its gains.
+                    l.set_y(l.edge_count() - 1, [0.3, -4.0, 2.5]);
+                }
+                2 => {
+                    assert!(l.try_edge(v - 40, v, w, [1.0, 5.0, 5.0]).is_some());
+                    l.undo_edge();
+                }
+                3 => {
+                    l.add_edge(v - 2500, v, w, [0.05, 0.0, 0.0]);
+                    l.set_y(l.edge_count() - 1, [0.05, 7.0, -1.0]);
+                }
+                _ => {
+                    // An older row's position measurement: the spread starts again.
+                    let e = l.edge_count() - 10;
+                    let y = l.y(e);
+                    l.set_y(e, [y[0], y[1] + 0.5, y[2]]);
+                }
+            }
+        }
+        for widen_at in [None, Some(4)] {
+            let (mut now, mut later, mut plain) = (build(), build(), build());
+            let before = later.all(1);
+            now.relinearise(job(), 1);
+            now.flush_rhs();
+            later.relinearise(job(), 1);
+            let (mut now2, mut later2) = (None, None);
+            let mut steps = 0;
+            for step in 0..60 {
+                if Some(step) == widen_at {
+                    now2 = Some(now.widen([1.0, 2.0]));
+                    later2 = Some(later.widen([1.0, 2.0]));
+                }
+                match (&mut now2, &mut later2) {
+                    (Some(n), Some(l)) => {
+                        changes(n, step, [1.5, 0.7]);
+                        changes(l, step, [1.5, 0.7]);
+                        n.after_step(|| None);
+                        l.after_step(|| None);
+                        if l.stale_rhs.is_none() {
+                            break;
+                        }
+                    }
+                    _ => {
+                        changes(&mut now, step, [1.5]);
+                        changes(&mut later, step, [1.5]);
+                        // Until the end the answers are those of the rows before.
+                        changes(&mut plain, step, [1.5]);
+                        assert!(close(&later.all(1), &plain.all(1)), "moved early");
+                        plain.after_step(|| None);
+                        now.after_step(|| None);
+                        later.after_step(|| None);
+                        if later.stale_rhs.is_none() {
+                            break;
+                        }
+                    }
+                }
+                steps += 1;
+            }
+            assert!(steps >= 5, "spread over {steps} steps only");
+            let renewals = later2.as_ref().map_or(later.renewals, |l| l.renewals);
+            assert_eq!(renewals, 0);
+            let (a, b): (Vec<Vec<f64>>, Vec<Vec<f64>>) = match (now2, later2) {
+                (Some(mut n), Some(mut l)) => (
+                    (0..3).map(|q| n.all(q)).collect(),
+                    (0..3).map(|q| l.all(q)).collect(),
+                ),
+                _ => (
+                    (0..3).map(|q| now.all(q)).collect(),
+                    (0..3).map(|q| later.all(q)).collect(),
+                ),
+            };
+            for q in 0..3 {
+                assert!(close(&a[q], &b[q]), "column {q}, widened at {widen_at:?}");
+            }
+            assert!(!close(&b[1], &before), "the positions did not move");
+        }
     }
 
     /// [`Laplacian::moved`] bounds how far every node's anchored value has moved since it was

@@ -68,7 +68,8 @@ pub struct StreamArgs<'a> {
 /// did in it, from the step's change in `Counters`: `renewed` (a renewal of its order
 /// collected), `renewal_waited` (the step waited for that renewal's builder) and
 /// `relinearised` (the headings solved and every position row rewritten at them; the
-/// factor's right-hand sides follow at the next step, a forward solve counted in its work).
+/// factor's right-hand sides follow over about the next 16 steps, a forward solve spread a
+/// block of positions a step and counted in their work).
 /// `OnlineEstimator::counters` reads these after the step's read, which applies them.
 struct Trace {
     out: std::io::BufWriter<std::fs::File>,

@@ -104,6 +104,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         self.load(entries);
         // Cannot fail for an update.
         let (residual, cosines) = self.rotate(beta, false).unwrap_or(([0.0; K], [1.0; L]));
+        self.spread_take(beta, false);
         Leftover { residual, cosines }
     }
 
@@ -129,6 +130,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         self.undo = Some(undo);
         self.load(entries);
         let (residual, cosines) = self.rotate_recording(beta);
+        self.spread_take(beta, true);
         Leftover { residual, cosines }
     }
 
@@ -181,6 +183,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
 
     /// Keep the row of the last [`Self::try_row`].
     pub fn keep_row(&mut self) {
+        self.spread_keep();
         if let Some(u) = &mut self.undo {
             u.rows.clear();
             u.values.clear();
@@ -196,6 +199,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         let Some(mut u) = self.undo.take_if(|u| u.active) else {
             return;
         };
+        self.spread_undo();
         for r in u.rows.iter().rev() {
             let (k, len) = (r.k as usize, r.len as usize);
             let row = &mut self.rows[k];
@@ -253,6 +257,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         downdate: bool,
     ) -> Result<([f64; K], [f64; L]), Indefinite> {
         let work_before = self.work;
+        self.spread_begin_row(downdate);
         let mut w = std::mem::take(&mut self.w);
         let mut next = std::mem::take(&mut self.w_next);
         // `Some(j)`: the row's positions are row j of R's (`w.pos` unused), its values `w.val`
@@ -275,6 +280,18 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
                 Some(j) => self.rows[j].pos[head],
                 None => w.pos[head],
             } as usize;
+            // A spread forward solve logs the rotations before its position and keeps the row
+            // as it reaches it (module `spread`).
+            let log_spread = match self.spread.as_deref_mut() {
+                Some(sp) if !downdate => {
+                    let positions = match pattern_of {
+                        Some(j) => &self.rows[j].pos[head..],
+                        None => &w.pos[head..],
+                    };
+                    sp.meet(k, (positions, &w.val[head..]), gain)
+                }
+                _ => false,
+            };
             self.work += (L * (1 + self.rows[k].len() + w.val.len() - head)) as u64;
             if self.recording
                 && let Some(u) = &mut self.undo
@@ -330,6 +347,9 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
             }
             if indefinite {
                 break Err(Indefinite { position: k });
+            }
+            if log_spread && let Some(sp) = self.spread.as_deref_mut() {
+                sp.log(k, c, s);
             }
             if !downdate {
                 self.gains

@@ -293,7 +293,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         if self.deferred {
             return None;
         }
-        self.flush_rhs();
+        self.advance_rhs();
         self.step_work();
         self.post();
         if self.renewal.is_some() {

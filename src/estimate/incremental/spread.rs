@@ -1,0 +1,287 @@
+//! A forward solve spread over steps: new right-hand sides for every row of R, computed a few
+//! rows at a time while rows keep being rotated into R.
+//!
+//! Recomputing right-hand sides `from..K` from the rows (`Rᵀ d = g`, `g = Σ_r a_r β_r`, after
+//! the rows' β were rewritten: a re-linearisation) is one right-looking forward solve over all
+//! of R. Done a block of positions at a time, with R changing in between, it keeps, for the
+//! positions `k < p` already solved, their new values `d'_k`, and for the others the part of
+//! g not yet eliminated, `h = g_{≥p} − R_{<p,≥p}ᵀ d'_{<p}`:
+//!
+//! ```text
+//! advance:        d'_p = h_p / R_pp,   h_j −= R_pj d'_p  (j in row p),   p += 1
+//! a row (a, β'):  its rotations at rows k < p turn (d'_k, β') as they turn (d_k, β);
+//!                 the row reaches position p or beyond as (w, β'_rem): h += w β'_rem
+//! ```
+//!
+//! The second line keeps the invariant: the rotations at rows before p are orthogonal, so
+//! `R'_{<p}ᵀ d'_{<p} + w β'_rem = R_{<p}ᵀ d'_{<p} + a β'`, and with `g' = g + a β'` the
+//! uneliminated part moves by `w β'_rem`; rotations among the rows from p on change
+//! `R_{≥p}` only, which the later blocks read as it is then. When p reaches the end, `d'` is
+//! `R⁻ᵀ g` for the R of that moment — what one forward solve then would give, up to rounding
+//! — and replaces d's right-hand sides `from..K`. Until then d answers with the rows' old β.
+//!
+//! A row's rotations are replayed on `d'` when it is kept (a tried row taken back never
+//! reaches it); a shift of the last row's β (`shift_last_row`) moves `d'` through the same
+//! gains and `h` through the row as it crossed p. What the spread does not follow — a removed
+//! row, a shift of another row's β in these right-hand sides, a shift after p moved — marks it
+//! stale, and its owner starts it again from the rows.
+
+use super::{SqrtInfo, lane};
+
+/// Positions solved per step: a spread ends after about this many steps (fewer when the
+/// factor is small: [`MIN_BLOCK`]).
+pub(super) const SPREAD_STEPS: usize = 16;
+
+/// Values of R eliminated per step at least.
+const MIN_BLOCK: usize = 4096;
+
+/// The state of a spread forward solve (module docs).
+#[derive(Clone, Debug)]
+pub(super) struct Spread<const K: usize, const L: usize> {
+    /// The right-hand sides it computes: `from..K`.
+    from: usize,
+    /// Positions before p are solved.
+    p: usize,
+    /// The new right-hand sides of the positions before p.
+    d_new: Vec<[f64; K]>,
+    /// For the positions from p on: the part of g not yet eliminated.
+    h: Vec<[f64; K]>,
+    /// The rotations of the row being rotated in at rows before p: `(k, c, s)`.
+    log: Vec<(u32, [f64; L], [f64; L])>,
+    /// That row as it reached position p or beyond (all its positions from p on), and the
+    /// product of the cosines of the rotations before.
+    crossing: Vec<(u32, [f64; L])>,
+    crossing_gain: [f64; L],
+    /// Whether `log` and `crossing` are being written for the rotation in progress.
+    crossed: bool,
+    /// The β of a tried row not yet kept (taken in at `keep_row`).
+    pending: Option<[f64; K]>,
+    /// `log` and `crossing` belong to the last row taken in, at the current p.
+    follows_last: bool,
+    /// Changed in a way it does not follow: to start again.
+    stale: bool,
+}
+
+impl<const K: usize, const L: usize> Spread<K, L> {
+    /// The row being rotated in meets row k: whether k lies before p (then its rotation is
+    /// logged: [`Self::log`]). At the first k from p on, the row's entries (`positions` and
+    /// `values`, from its head on) and the product `gain` of the cosines so far are kept.
+    pub(super) fn meet(
+        &mut self,
+        k: usize,
+        (positions, values): (&[u32], &[[f64; L]]),
+        gain: [f64; L],
+    ) -> bool {
+        if self.crossed {
+            return false;
+        }
+        if k < self.p {
+            return true;
+        }
+        self.crossed = true;
+        self.crossing_gain = gain;
+        self.crossing.extend(
+            (positions.iter().copied().zip(values.iter().copied()))
+                .filter(|(_, v)| v.iter().any(|&x| x != 0.0)),
+        );
+        false
+    }
+
+    /// Log the rotation `(c, s)` at row k (before p).
+    pub(super) fn log(&mut self, k: usize, c: [f64; L], s: [f64; L]) {
+        self.log.push((k as u32, c, s));
+    }
+}
+
+impl<const K: usize, const L: usize> SqrtInfo<K, L> {
+    /// Start a spread forward solve of right-hand sides `from..K` from `rows` (their entries and
+    /// β, as for [`Self::reset_rhs_in`]), replacing any in progress.
+    pub fn spread_start<const N: usize, C: super::Lanes<L>>(
+        &mut self,
+        from: usize,
+        rows: impl IntoIterator<Item = ([(usize, C); N], [f64; K])>,
+    ) {
+        let n = self.len();
+        let from = from.min(K);
+        crate::work::estimated(n as u64);
+        let g = self.information(from..K, rows);
+        self.spread = Some(Box::new(Spread {
+            from,
+            p: 0,
+            d_new: vec![[0.0; K]; n],
+            h: g,
+            log: Vec::new(),
+            crossing: Vec::new(),
+            crossing_gain: [1.0; L],
+            crossed: false,
+            pending: None,
+            follows_last: false,
+            stale: false,
+        }));
+    }
+
+    /// Whether a spread of right-hand sides `from..K` is in progress and follows R.
+    pub fn spreading(&self, from: usize) -> bool {
+        self.spread
+            .as_ref()
+            .is_some_and(|s| !s.stale && s.from == from.min(K))
+    }
+
+    /// Drop the spread in progress, if any.
+    pub fn spread_cancel(&mut self) {
+        self.spread = None;
+    }
+
+    /// Solve the next block of positions (about a [`SPREAD_STEPS`]-th of R); at the end, the
+    /// new right-hand sides replace d's and the spread is over. Whether it is over (true when
+    /// none was in progress).
+    pub fn spread_advance(&mut self) -> bool {
+        let n = self.len();
+        let budget = ((n + self.nnz) / SPREAD_STEPS).max(MIN_BLOCK);
+        let Some(sp) = self.spread.as_mut() else {
+            return true;
+        };
+        let from = sp.from;
+        let mut done = 0;
+        while sp.p < n && done < budget {
+            let k = sp.p;
+            let mut dk = sp.h[k];
+            let diag = self.diag[k];
+            for (q, x) in dk.iter_mut().enumerate().skip(from) {
+                *x /= diag[lane::<L>(q)];
+            }
+            let row = &self.rows[k];
+            for (&j, a) in row.pos.iter().zip(&row.val) {
+                let hj = &mut sp.h[j as usize];
+                for q in from..K {
+                    hj[q] -= a[lane::<L>(q)] * dk[q];
+                }
+            }
+            sp.d_new[k] = dk;
+            done += 1 + row.len();
+            sp.p += 1;
+        }
+        // A shift of the last row after this would split its path at another p.
+        sp.follows_last = false;
+        crate::work::estimated(done as u64);
+        if sp.p < n {
+            return false;
+        }
+        for (d, new) in self.d.iter_mut().zip(&sp.d_new) {
+            d[from..].copy_from_slice(&new[from..]);
+        }
+        self.spread = None;
+        true
+    }
+
+    /// A new variable at the end of the order.
+    pub(super) fn spread_push(&mut self) {
+        if let Some(sp) = &mut self.spread {
+            sp.d_new.push([0.0; K]);
+            sp.h.push([0.0; K]);
+        }
+    }
+
+    /// A rotation begins (`downdate`: a removed row, which the spread does not follow).
+    pub(super) fn spread_begin_row(&mut self, downdate: bool) {
+        if let Some(sp) = &mut self.spread {
+            sp.log.clear();
+            sp.crossing.clear();
+            sp.crossing_gain = [1.0; L];
+            sp.crossed = false;
+            sp.follows_last = false;
+            sp.stale |= downdate;
+        }
+    }
+
+    /// The row just rotated in is kept with right-hand side `beta` (now, or at `keep_row`
+    /// when `tried`).
+    pub(super) fn spread_take(&mut self, beta: [f64; K], tried: bool) {
+        let Some(sp) = &mut self.spread else {
+            return;
+        };
+        if tried {
+            sp.pending = Some(beta);
+            return;
+        }
+        let from = sp.from;
+        let mut b = beta;
+        for &(k, c, s) in &sp.log {
+            let dk = &mut sp.d_new[k as usize];
+            for q in from..K {
+                let l = lane::<L>(q);
+                (dk[q], b[q]) = (c[l] * dk[q] + s[l] * b[q], c[l] * b[q] - s[l] * dk[q]);
+            }
+        }
+        for &(j, v) in &sp.crossing {
+            let hj = &mut sp.h[j as usize];
+            for q in from..K {
+                hj[q] += v[lane::<L>(q)] * b[q];
+            }
+        }
+        sp.follows_last = true;
+    }
+
+    /// A tried row is kept.
+    pub(super) fn spread_keep(&mut self) {
+        if let Some(beta) = self.spread.as_mut().and_then(|sp| sp.pending.take()) {
+            self.spread_take(beta, false);
+        }
+    }
+
+    /// A tried row is taken back (it never reached the spread).
+    pub(super) fn spread_undo(&mut self) {
+        if let Some(sp) = &mut self.spread {
+            sp.pending = None;
+            sp.follows_last = false;
+        }
+    }
+
+    /// The last row's β moved by `delta` (its gains valid): `d'` by the gains at rows before
+    /// p, `h` by the row as it crossed p.
+    pub(super) fn spread_shift_last(&mut self, delta: [f64; K]) {
+        let Some(sp) = &mut self.spread else {
+            return;
+        };
+        let from = sp.from;
+        if delta[from..].iter().all(|&x| x == 0.0) {
+            return;
+        }
+        if let Some(b) = &mut sp.pending {
+            // The rotations are linear in β: taken in later with β + Δβ.
+            for q in from..K {
+                b[q] += delta[q];
+            }
+            return;
+        }
+        if !sp.follows_last {
+            sp.stale = true;
+            return;
+        }
+        for &(k, g) in &self.gains {
+            if (k as usize) < sp.p {
+                let dk = &mut sp.d_new[k as usize];
+                for q in from..K {
+                    dk[q] += g[lane::<L>(q)] * delta[q];
+                }
+            }
+        }
+        for &(j, v) in &sp.crossing {
+            let hj = &mut sp.h[j as usize];
+            for q in from..K {
+                let l = lane::<L>(q);
+                hj[q] += v[l] * sp.crossing_gain[l] * delta[q];
+            }
+        }
+    }
+
+    /// Some row's β moved by `delta` by a forward solve along its path: followed only where
+    /// the spread's right-hand sides do not move.
+    pub(super) fn spread_shift_other(&mut self, delta: [f64; K]) {
+        if let Some(sp) = &mut self.spread
+            && delta[sp.from..].iter().any(|&x| x != 0.0)
+        {
+            sp.stale = true;
+        }
+    }
+}
