@@ -20,7 +20,10 @@
 //!   added (while no row was added or removed since), `d_k += g_k Δβ` with the gains
 //!   `g_k = s_k Π_{j<k} c_j` its rotations recorded, without walking R again
 //!   ([`SqrtInfo::shift_last_row`]);
-//! - **a new variable** is appended at the end of the order with an empty row.
+//! - **a new variable** is appended at the end of the order with an empty row;
+//! - **new right-hand sides for every row** (the rows' β rewritten: a re-linearisation) are one
+//!   forward solve `Rᵀ d = Σ a β` ([`SqrtInfo::reset_rhs_in`]), or the same spread over steps
+//!   a block of positions at a time while rows keep being rotated in (module `spread`).
 //!
 //! **Lanes.** A factor may hold `L` systems whose rows are the same up to their coefficients
 //! (one graph, other weights): one order and one pattern, every entry of R holding a value per

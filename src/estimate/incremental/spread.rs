@@ -52,7 +52,8 @@ pub(super) struct Spread<const K: usize, const L: usize> {
     /// product of the cosines of the rotations before.
     crossing: Vec<(u32, [f64; L])>,
     crossing_gain: [f64; L],
-    /// Whether `log` and `crossing` are being written for the rotation in progress.
+    /// Whether the row being rotated in has reached p (`crossing` is kept, nothing more is
+    /// logged).
     crossed: bool,
     /// The β of a tried row not yet kept (taken in at `keep_row`).
     pending: Option<[f64; K]>,
