@@ -254,6 +254,8 @@ pub struct OnlineEstimator {
     screener: Screener,
     /// Ambiguous cycles with their conditional moments at their last screening.
     ambiguous: BTreeMap<usize, Moments>,
+    /// The counts as of the last step; those of the estimate's factor are not kept here but
+    /// read from it ([`Self::estimate_counters`]).
     counters: Counters,
     /// The factored orientations and positions (the estimate read after every step).
     estimate: Estimate,
@@ -379,7 +381,7 @@ impl std::fmt::Debug for OnlineEstimator {
             .field("config", &self.config)
             .field("nodes", &self.graph.node_count())
             .field("edges", &self.graph.edge_count())
-            .field("counters", &self.counters)
+            .field("counters", &self.counters())
             .finish_non_exhaustive()
     }
 }
@@ -751,13 +753,11 @@ impl OnlineEstimator {
         self.counters.inconsistent = self.screener.inconsistent_count();
         self.counters.rebuild_waits = self.rebuild_waits;
         self.counters.replayed_arrivals = self.replay_work;
-        let mut counters = self.counters;
-        self.estimate_counters(&mut counters);
-        self.counters = counters;
     }
 
     /// The counters of the estimate's factor as they are now (a read applies the steps'
-    /// operations to it after [`Self::add_edge`] returned).
+    /// operations to it after [`Self::add_edge`] returned): derived whenever they are read
+    /// ([`Self::counters`]), never stored.
     fn estimate_counters(&self, counters: &mut Counters) {
         let (renewals, waits) = self.estimate.renewals();
         counters.estimate_renewals = renewals;

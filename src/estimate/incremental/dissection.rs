@@ -358,8 +358,7 @@ fn separate(
     // calls at once (a renewal's builder and a rebuild's replay, each with its own thread)
     // would each draw some of the other's numbers and split differently from run to run. Taken
     // by renewals only (their builders, and a caller's idle time: no step splits a graph); a
-    // poisoned lock guards nothing of
-    // ours, so it is taken anyway.
+    // poisoned lock guards nothing of ours, so it is taken anyway.
     static METIS: std::sync::Mutex<()> = std::sync::Mutex::new(());
     let _one_at_a_time = METIS
         .lock()
