@@ -443,15 +443,16 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     /// [`Self::all`] for the right-hand sides `columns`, in one back-substitution.
     pub fn all_columns<const M: usize>(&mut self, columns: [usize; M]) -> [Vec<f64>; M] {
         let mut xs = self.factor.solve_columns(columns);
-        let anchors: Vec<usize> = (0..self.len())
-            .map(|v| self.anchor[self.components.find(v)])
-            .collect();
-        for x in &mut xs {
-            for (v, &a) in anchors.iter().enumerate() {
-                if a != v {
+        // (An anchor is its own: its value is read before any is changed.)
+        for v in 0..self.len() {
+            let a = self.anchor[self.components.find(v)];
+            if a != v {
+                for x in &mut xs {
                     x[v] -= x[a];
                 }
             }
+        }
+        for x in &mut xs {
             for (xv, &p) in x.iter_mut().zip(&self.prior) {
                 if p != [0.0; L] {
                     *xv = 0.0;

@@ -26,7 +26,7 @@
 //! row, a shift of another row's β in these right-hand sides, a shift after p moved — marks it
 //! stale, and its owner starts it again from the rows.
 
-use super::{SqrtInfo, lane};
+use super::{PREFETCH_AHEAD, SqrtInfo, lane};
 
 /// Positions solved per step: a spread ends after about this many steps (fewer when the
 /// factor is small: [`MIN_BLOCK`]).
@@ -150,6 +150,9 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
             let diag = self.diag[k];
             for (q, x) in dk.iter_mut().enumerate().skip(from) {
                 *x /= diag[lane::<L>(q)];
+            }
+            if let Some(ahead) = self.rows.get(k + PREFETCH_AHEAD) {
+                ahead.prefetch();
             }
             let row = &self.rows[k];
             for (&j, a) in row.pos.iter().zip(&row.val) {
