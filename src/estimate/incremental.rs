@@ -23,7 +23,8 @@
 //! - **a new variable** is appended at the end of the order with an empty row;
 //! - **new right-hand sides for every row** (the rows' β rewritten: a re-linearisation) are one
 //!   forward solve `Rᵀ d = Σ a β` ([`SqrtInfo::reset_rhs_in`]), or the same spread over steps
-//!   a block of positions at a time while rows keep being rotated in (module `spread`).
+//!   a block of positions at a time while rows keep being rotated in (module `spread`); and
+//!   a back-substitution the same way (module `back`).
 //!
 //! **Lanes.** A factor may hold `L` systems whose rows are the same up to their coefficients
 //! (one graph, other weights): one order and one pattern, every entry of R holding a value per
@@ -43,6 +44,7 @@
 //! Written by hand because no maintained crate offers a sparse QR/Cholesky factor that can be
 //! grown, down-dated and read in place one row at a time (faer's sparse Cholesky refactors).
 
+mod back;
 mod dissection;
 mod factored;
 mod rotate;
@@ -250,6 +252,8 @@ pub(crate) struct SqrtInfo<const K: usize, const L: usize = 1> {
     recording: bool,
     /// A forward solve of new right-hand sides spread over steps (module `spread`).
     spread: Option<Box<Spread<K, L>>>,
+    /// A back-substitution spread over steps (module `back`).
+    back: Option<Box<back::Back>>,
 }
 
 /// What rotating a row `aᵀx = β` into R leaves ([`SqrtInfo::try_row`]): the part of each
@@ -307,6 +311,7 @@ impl<const K: usize, const L: usize> Default for SqrtInfo<K, L> {
             undo: None,
             recording: false,
             spread: None,
+            back: None,
         }
     }
 }

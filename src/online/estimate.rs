@@ -165,7 +165,36 @@ pub(crate) struct Estimate {
     positions_held: bool,
     /// The headings' sines and cosines for the position rows.
     trig: Trig,
+    /// A re-linearisation of the position rows in progress ([`Self::after_step`]).
+    relin: Option<Relin>,
+    /// The rows' new position measurements written so far by the one in progress (kept for
+    /// its room).
+    relin_rows: Vec<[f64; 2]>,
 }
+
+/// A re-linearisation of the position rows made over steps ([`Estimate::after_step`]):
+/// `moved` is the headings' bound [`Laplacian::moved`] at its first step, `edges` the position
+/// rows then (the later ones are written at the headings of their own steps).
+enum Relin {
+    /// The headings solved a block of the factor's positions per step
+    /// ([`Laplacian::back_start`]).
+    Headings { moved: f64, edges: usize },
+    /// The rows' position measurements `R(θ_a) t_e` at those headings `theta`, written a block
+    /// of rows per step from row `next` on; the last block rewrites them in the factor's rows.
+    Rows {
+        theta: Vec<f64>,
+        next: usize,
+        moved: f64,
+        edges: usize,
+    },
+}
+
+/// Blocks of rows a re-linearisation writes ([`Relin::Rows`]), one a step (fewer when there
+/// are few rows: [`MIN_ROW_BLOCK`]).
+const ROW_STEPS: usize = 4;
+
+/// Rows a re-linearisation writes per step at least.
+const MIN_ROW_BLOCK: usize = 4096;
 
 /// Live work (entries of the factor visited by the steps' rotations and solves, counted)
 /// between two re-linearisations for the bound [`HEADING_LAG`], per nonzero of the factor: a
@@ -303,6 +332,14 @@ impl Trig {
         self.out.clear();
         (self.out).extend((theta.iter().zip(&mut self.near)).map(|(&t, n)| sin_cos_near(t, n)));
         &self.out
+    }
+
+    /// `(sin θ, cos θ)` of node v's heading θ.
+    fn at(&mut self, v: usize, theta: f64) -> (f64, f64) {
+        if self.near.len() <= v {
+            self.near.resize(v + 1, [f64::NAN; 3]);
+        }
+        sin_cos_near(theta, &mut self.near[v])
     }
 
     /// Room for `nodes` nodes in all.
@@ -583,6 +620,7 @@ impl Estimate {
             return None;
         }
         if renew {
+            self.relin_cancel();
             let edges = self.factors.position_rows();
             with_factor!(&mut self.factors, both => {
                 both.renew_now(Some(Box::new(relinearise::<3>(graph, edges, 1))));
@@ -624,6 +662,7 @@ impl Estimate {
     /// right-hand sides at once (nothing left for a step): a caller's idle time
     /// ([`Self::maintain`]) and the end of a replay ([`Self::release_positions`]).
     fn relinearise_now(&mut self, graph: &PoseGraph) {
+        self.relin_cancel();
         let edges = self.factors.position_rows();
         self.factors
             .relinearise_positions(graph, edges, &mut self.trig);
@@ -762,7 +801,10 @@ impl Estimate {
                     })
                 }
                 Op::Step => self.after_step(graph),
-                Op::Defer => self.factors.defer(),
+                Op::Defer => {
+                    self.relin_cancel();
+                    self.factors.defer()
+                }
                 Op::Rebuild => self
                     .factors
                     .rebuild(graph, self.inherited.take(), &mut self.trig),
@@ -773,27 +815,115 @@ impl Estimate {
     }
 
     /// End of a step: renewals start or complete. A renewal of the factor takes every
-    /// position row at the current headings (solved and written on its builder).
+    /// position row at the current headings (solved and written on its builder). Once the
+    /// headings' bound passes [`HEADING_LAG`], a re-linearisation of the position rows starts
+    /// and goes on over the next steps ([`Self::relinearise_over_steps`]).
     fn after_step(&mut self, graph: &PoseGraph) {
         let edges = self.factors.position_rows();
         let deferred = self.factors.deferred();
         let at_start = &mut self.moved_at_renewal;
-        with_factor!(&mut self.factors, both => {
+        let collected = with_factor!(&mut self.factors, both => {
             let event = both.after_step(|| {
                 // The headings and the rows from them on the builder.
                 Some(Box::new(relinearise::<3>(graph, edges, 1)))
             });
             track_lag(both, event, at_start);
+            matches!(event, Some(RenewalEvent::Collected))
         });
-        if deferred || self.positions_held || self.factors.headings_moved() <= HEADING_LAG {
-            return;
+        // A renewal swapped in brought rows at its snapshot's headings, and the bound from
+        // there: a re-linearisation in progress is older.
+        if deferred || self.positions_held || collected {
+            self.relin_cancel();
+            if deferred || self.positions_held {
+                return;
+            }
         }
-        if self.relinearisation_paid(1.0) {
-            self.factors
-                .relinearise_positions(graph, edges, &mut self.trig);
-            self.relinearisations += 1;
-            // (A renewal in progress takes these rows too: its bound counts from here.)
-            self.relinearised();
+        if self.relin.is_none() {
+            if self.factors.headings_moved() <= HEADING_LAG || !self.relinearisation_paid(1.0) {
+                return;
+            }
+            let moved = self.factors.headings_moved();
+            with_factor!(&mut self.factors, both => both.back_start(0));
+            self.relin = Some(Relin::Headings { moved, edges });
+        }
+        self.relinearise_over_steps(graph);
+    }
+
+    /// One step of the re-linearisation in progress: a block of the headings'
+    /// back-substitution (module `estimate::incremental::back`, about an eighth of the
+    /// factor), or, once they are solved, a block of the rows' position measurements (about a
+    /// quarter), the last of which rewrites the rows in the factor; the factor's right-hand
+    /// sides follow over the next steps ([`Laplacian::relinearise`]). So no step pays for a
+    /// whole pass over the factor. The headings' blocks read the factor of their own steps,
+    /// so the headings are those of the first block's step up to what the headings moved
+    /// since (module `back`'s maximum principle), and the rows' lag after it is the bound's
+    /// growth since that step.
+    fn relinearise_over_steps(&mut self, graph: &PoseGraph) {
+        match self.relin.take() {
+            None => {}
+            Some(Relin::Headings { moved, edges }) => {
+                match with_factor!(&mut self.factors, both => both.back_advance()) {
+                    // The factor was replaced (widened): a later step starts again.
+                    None => {}
+                    Some(false) => self.relin = Some(Relin::Headings { moved, edges }),
+                    Some(true) => {
+                        if let Some(theta) =
+                            with_factor!(&mut self.factors, both => both.back_take())
+                        {
+                            self.relin_rows.clear();
+                            self.relin = Some(Relin::Rows {
+                                theta,
+                                next: 0,
+                                moved,
+                                edges,
+                            });
+                        }
+                    }
+                }
+            }
+            Some(Relin::Rows {
+                theta,
+                next,
+                moved,
+                edges,
+            }) => {
+                let end = edges.min(next + (edges / ROW_STEPS).max(MIN_ROW_BLOCK));
+                let (ends, measured) = (&graph.endpoints()[next..end], &graph.edges()[next..end]);
+                for (&(a, _), e) in ends.iter().zip(measured) {
+                    let [px, py] = rotated(self.trig.at(a, theta[a]), e.measurement());
+                    self.relin_rows.push([px, py]);
+                }
+                if end < edges {
+                    self.relin = Some(Relin::Rows {
+                        theta,
+                        next: end,
+                        moved,
+                        edges,
+                    });
+                    return;
+                }
+                let lag = (self.factors.headings_moved() - moved).max(0.0);
+                let rows = &self.relin_rows;
+                with_factor!(&mut self.factors, both => {
+                    both.relinearise(|y| {
+                        for (ye, &[px, py]) in y.iter_mut().zip(rows) {
+                            ye[1] = px;
+                            ye[2] = py;
+                        }
+                    }, 1);
+                    both.set_moved(0, lag);
+                });
+                self.relinearisations += 1;
+                // (A renewal in progress takes these rows too: its bound counts from here.)
+                self.relinearised();
+            }
+        }
+    }
+
+    /// Drop a re-linearisation in progress ([`Self::relinearise_over_steps`]).
+    fn relin_cancel(&mut self) {
+        if self.relin.take().is_some() {
+            with_factor!(&mut self.factors, both => both.back_cancel());
         }
     }
 

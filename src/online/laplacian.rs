@@ -443,23 +443,55 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     /// [`Self::all`] for the right-hand sides `columns`, in one back-substitution.
     pub fn all_columns<const M: usize>(&mut self, columns: [usize; M]) -> [Vec<f64>; M] {
         let mut xs = self.factor.solve_columns(columns);
+        self.anchored(&mut xs);
+        xs
+    }
+
+    /// Start solving right-hand side q for every node a block of positions per step
+    /// ([`Self::back_advance`]; module `estimate::incremental::back`: each block reads the
+    /// factor of its own step), dropping one in progress.
+    pub fn back_start(&mut self, q: usize) {
+        self.factor.back_start(q);
+    }
+
+    /// Solve the next block: whether the solve is complete; None when none is in progress
+    /// (none started, or the factor was replaced since: a renewal swapped in, a rebuild).
+    pub fn back_advance(&mut self) -> Option<bool> {
+        self.factor.back_advance()
+    }
+
+    /// Every node's value of a complete spread solve, as [`Self::all`] gives them (each
+    /// relative to its anchor); None when none is complete. The solve ends.
+    pub fn back_take(&mut self) -> Option<Vec<f64>> {
+        let mut xs = [self.factor.back_take()?];
+        self.anchored(&mut xs);
+        let [x] = xs;
+        Some(x)
+    }
+
+    /// Drop a spread solve in progress ([`Self::back_start`]).
+    pub fn back_cancel(&mut self) {
+        self.factor.back_cancel();
+    }
+
+    /// Every node's values relative to its anchor's (an anchor's, with its prior, 0).
+    fn anchored<const M: usize>(&mut self, xs: &mut [Vec<f64>; M]) {
         // (An anchor is its own: its value is read before any is changed.)
         for v in 0..self.len() {
             let a = self.anchor[self.components.find(v)];
             if a != v {
-                for x in &mut xs {
+                for x in xs.iter_mut() {
                     x[v] -= x[a];
                 }
             }
         }
-        for x in &mut xs {
+        for x in xs {
             for (xv, &p) in x.iter_mut().zip(&self.prior) {
                 if p != [0.0; L] {
                     *xv = 0.0;
                 }
             }
         }
-        xs
     }
 
     /// Marginal variance of node v in the anchored system: `Var(θ_v − θ_anchor)` (0 for an
@@ -851,6 +883,82 @@ mod tests {
             let [x, y] = [r[1], r[2]];
             (r[1], r[2]) = (c * x - s * y, s * x + c * y);
         }
+    }
+
+    /// A back-substitution spread over steps gives the bits of one at once when nothing
+    /// changes in between; while rows are rotated in and nodes appended between its blocks,
+    /// every value is off the solution of the last block's step by at most the sum of the
+    /// most any value moved in each step (module `estimate::incremental::back`), and it does
+    /// read the factors of the steps (it is not the first step's solution). A factor replaced
+    /// drops it.
+    #[test]
+    fn a_back_substitution_spread_over_steps_is_within_the_movement_of_its_steps() {
+        let mut l = chain_with_closures(3000, 5, 290);
+        l.set_renewal_delay(f64::INFINITY);
+        // Nothing changes: the same bits.
+        l.back_start(0);
+        let mut blocks = 0;
+        while l.factor.back_advance_by(3000) == Some(false) {
+            blocks += 1;
+        }
+        assert!(blocks >= 5, "{blocks} blocks");
+        let (spread, whole) = (l.back_take().expect("complete"), l.all(0));
+        assert!(
+            spread
+                .iter()
+                .zip(&whole)
+                .all(|(a, b)| a.to_bits() == b.to_bits())
+        );
+        assert!(l.back_take().is_none(), "taken once");
+        // Loop closures that turn the headings, and new nodes, between the blocks.
+        l.back_start(0);
+        let mut solutions = vec![l.all(0)];
+        for step in 0.. {
+            let v = l.add_node();
+            l.add_edge(v - 1, v, 4.0, [0.01, 1.0, 0.0]);
+            // Loop closures 0.05 rad off the headings' prediction: each moves them a little.
+            let now = l.all(0);
+            let off_by = |a: usize, delta: f64| [now[v] - now[a] + delta, 0.0, 0.0];
+            match step % 3 {
+                0 => l.add_edge(v - 900 - step, v, 2.0, off_by(v - 900 - step, -0.05)),
+                1 => {
+                    assert!(
+                        l.try_edge(v - 2500, v, 2.0, off_by(v - 2500, 0.05))
+                            .is_some()
+                    );
+                    l.keep_edge();
+                }
+                _ => {}
+            }
+            l.after_step(|| None);
+            let done = l.factor.back_advance_by(3000);
+            solutions.push(l.all(0));
+            if done == Some(true) {
+                assert!(step >= 5, "{step} steps");
+                break;
+            }
+            assert_eq!(done, Some(false));
+        }
+        let spread = l.back_take().expect("complete");
+        let last = solutions.last().expect("a step");
+        let moved: f64 = (solutions.windows(2))
+            .map(|w| (w[0].iter().zip(&w[1])).fold(0.0_f64, |m, (a, b)| m.max((a - b).abs())))
+            .sum();
+        let off = (spread.iter().zip(last)).fold(0.0_f64, |m, (a, b)| m.max((a - b).abs()));
+        let off_first =
+            (spread.iter().zip(&solutions[0])).fold(0.0_f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(moved > 0.05, "the headings moved by {moved} only");
+        assert!(off <= moved + 1e-9, "{off} off, {moved} moved");
+        assert!(
+            off_first > 1e-3,
+            "the first step's solution ({off_first} off)"
+        );
+        assert_eq!(spread.len(), last.len(), "the appended nodes solved");
+        // A replaced factor drops it.
+        l.back_start(0);
+        l.rebuild();
+        assert_eq!(l.back_advance(), None);
+        assert!(l.back_take().is_none());
     }
 
     /// A re-linearisation rewrites the rows at once and their right-hand sides at the end of
