@@ -155,6 +155,22 @@ impl<const L: usize> Row<L> {
     }
 }
 
+/// The share of its usual block that a pass spread over steps (modules `spread` and `back`,
+/// and the rows of a re-linearisation, module `online::estimate`) takes at a step whose own
+/// work on the factor (its rotations) was `own` entries of R, against that usual block, `base`
+/// entries: up to twice as much at a light step (an odometry row, a few dozen entries), a
+/// quarter at a heavy one (a loop closure's rotations, as many entries as the block or more):
+/// `max(1/4, 2 − own/base)`. The slowest steps are loop closures', and a block added to them
+/// adds to the p99. Counted work, so the same steps in every run, and the same with one lane
+/// or two (entries, not values).
+pub(crate) fn levelled(own: u64, base: usize) -> f64 {
+    (2.0 - own as f64 / base.max(1) as f64).max(0.25)
+}
+
+/// Entries of R a block of a pass spread over steps reads at least, however heavy its step
+/// ([`levelled`]).
+const MIN_LEVELLED: usize = 4096;
+
 /// How many rows ahead a pass over R prefetches ([`Row::prefetch`]).
 const PREFETCH_AHEAD: usize = 8;
 
@@ -357,6 +373,13 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     /// forward solve costs in proportion to the entries of the rows on its path).
     pub fn take_work(&mut self) -> u64 {
         std::mem::take(&mut self.work)
+    }
+
+    /// A block of a pass spread over steps whose usual block is `base` entries, at a step
+    /// whose own work on the factor was `own` values ([`levelled`]; values are entries times
+    /// lanes): at least [`MIN_LEVELLED`] entries.
+    pub(crate) fn levelled_block(&self, base: usize, own: u64) -> usize {
+        ((base as f64 * levelled(own / L as u64, base)) as usize).max(MIN_LEVELLED)
     }
 
     /// Nonzeros of R (diagonal included).

@@ -41,17 +41,24 @@
 //! like iSAM2's with a relinearisation threshold. Every position row is re-linearised at the
 //! current headings whenever a renewal of the position factor's order starts (the renewed
 //! factor takes them; its builder solves those headings from the factor it built, so the step
-//! that starts a renewal pays no back-substitution), and at the step at which a bound on how
-//! far the headings have moved since the rows were linearised passes [`HEADING_LAG`] — the
-//! rows rewritten at that step's headings (one back-substitution), the factor's right-hand
-//! sides recomputed from them over the next steps (one forward solve spread over about 16
-//! steps, a block of positions each, while rows keep being rotated in:
-//! [`Laplacian::relinearise`], module `estimate::incremental::spread`), so that no step pays
-//! for both passes over the factor, nor for a whole forward solve: each
+//! that starts a renewal pays no back-substitution), and from the step at which a bound on how
+//! far the headings have moved since the rows were linearised passes [`HEADING_LAG`], over
+//! the next steps ([`Estimate::relinearise_over_steps`]): the headings solved a block of the
+//! factor per step (a back-substitution spread over about 8 steps, each block reading the
+//! factor of its own step: module `estimate::incremental::back`), then the rows' position
+//! measurements at them a block of rows per step (about 4), the last block rewriting the rows,
+//! then the factor's right-hand sides recomputed from them (one forward solve spread over
+//! about 16 steps, a block of positions each, while rows keep being rotated in:
+//! [`Laplacian::relinearise`], module `estimate::incremental::spread`). Each block is sized by
+//! its step's own work on the factor, up to twice its share at a light step (an odometry row)
+//! and a quarter at a loop closure's heavy one (`estimate::incremental::levelled`), so that no
+//! step pays for a whole pass over the factor, and the heaviest steps pay little: each
 //! heading row added, or measurement moved, changes the headings by a potential driven between
 //! its two ends, which by the maximum principle moves no node by more than it moves the edge's
 //! own difference `θ_b − θ_a` — known from the rotations (`(δ − (θ̂_b − θ̂_a))(1 − Πc²)`,
-//! [`Laplacian::moved`]); the bound adds these up. Both are step-scheduled events, so the
+//! [`Laplacian::moved`]); the bound adds these up (and after a re-linearisation over steps it
+//! starts from its growth since the first of them, which bounds how far the headings its
+//! blocks solved are from the current ones). Both are step-scheduled events, so the
 //! answers do not depend on what was read when. [`Estimate::poses`] is the exact answer on
 //! demand, without changing the factor: every position row at the current headings (one forward
 //! and one back-substitution; a 2×2-block system solved from scratch when the translation
@@ -852,9 +859,10 @@ impl Estimate {
     /// One step of the re-linearisation in progress: a block of the headings'
     /// back-substitution (module `estimate::incremental::back`, about an eighth of the
     /// factor), or, once they are solved, a block of the rows' position measurements (about a
-    /// quarter), the last of which rewrites the rows in the factor; the factor's right-hand
-    /// sides follow over the next steps ([`Laplacian::relinearise`]). So no step pays for a
-    /// whole pass over the factor. The headings' blocks read the factor of their own steps,
+    /// quarter of them), the last of which rewrites the rows in the factor; the factor's
+    /// right-hand sides follow over the next steps ([`Laplacian::relinearise`]). Each block
+    /// by the step's own work ([`Laplacian::step_share`]: more at a light step, less at a
+    /// heavy one). So no step pays for a whole pass over the factor. The headings' blocks read the factor of their own steps,
     /// so the headings are those of the first block's step up to what the headings moved
     /// since (module `back`'s maximum principle), and the rows' lag after it is the bound's
     /// growth since that step.
@@ -887,7 +895,9 @@ impl Estimate {
                 moved,
                 edges,
             }) => {
-                let end = edges.min(next + (edges / ROW_STEPS).max(MIN_ROW_BLOCK));
+                let share = with_factor!(&self.factors, both => both.step_share());
+                let block = (edges / ROW_STEPS).max(MIN_ROW_BLOCK) as f64 * share;
+                let end = edges.min(next + block as usize);
                 let (ends, measured) = (&graph.endpoints()[next..end], &graph.edges()[next..end]);
                 for (&(a, _), e) in ends.iter().zip(measured) {
                     let [px, py] = rotated(self.trig.at(a, theta[a]), e.measurement());

@@ -114,6 +114,8 @@ pub(crate) struct Laplacian<const K: usize, const L: usize = 1> {
     outbox: Vec<Msg<K, L>>,
     /// The live factor's work so far ([`SqrtInfo::take_work`]).
     work: u64,
+    /// Its work in the last step ([`Self::step_share`]).
+    own_work: u64,
     /// The thread that builds renewals and frees retired factors.
     worker: Worker,
     steps: u64,
@@ -164,6 +166,7 @@ impl<const K: usize, const L: usize> Default for Laplacian<K, L> {
             renewal: None,
             outbox: Vec::new(),
             work: 0,
+            own_work: 0,
             worker: Worker::default(),
             steps: 0,
             last_edge: None,
@@ -454,10 +457,11 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         self.factor.back_start(q);
     }
 
-    /// Solve the next block: whether the solve is complete; None when none is in progress
-    /// (none started, or the factor was replaced since: a renewal swapped in, a rebuild).
+    /// Solve the next block (sized by the last step's own work, [`Self::step_share`]): whether
+    /// the solve is complete; None when none is in progress (none started, or the factor was
+    /// replaced since: a renewal swapped in, a rebuild).
     pub fn back_advance(&mut self) -> Option<bool> {
-        self.factor.back_advance()
+        self.factor.back_advance(self.own_work)
     }
 
     /// Every node's value of a complete spread solve, as [`Self::all`] gives them (each
@@ -718,9 +722,18 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         }
     }
 
-    /// Take the live factor's work since the last call into this system's count.
+    /// Take the live factor's work since the last call into this system's count (and as the
+    /// step's own, [`Self::step_share`]).
     fn step_work(&mut self) {
-        self.work += self.factor.take_work();
+        self.own_work = self.factor.take_work();
+        self.work += self.own_work;
+    }
+
+    /// The share of its usual block that a pass spread over steps takes after the last step
+    /// ([`crate::estimate::incremental::levelled`], by that step's own work on the factor):
+    /// what [`Self::back_advance`] takes, for other passes to take alike.
+    pub fn step_share(&self) -> f64 {
+        self.factor.back_share(self.own_work)
     }
 
     /// The live factor's work so far ([`SqrtInfo::take_work`]) and its nonzeros.

@@ -22,14 +22,15 @@
 //! still to be solved may have gained an entry at them. A factor replaced (a renewal swapped
 //! in, a rebuild) drops the solve with its state.
 
-use super::{PREFETCH_AHEAD, SqrtInfo, lane};
+use super::{PREFETCH_AHEAD, SqrtInfo, lane, levelled};
 
 /// Positions solved per step: a solve ends after about this many steps (fewer when the factor
 /// is small: [`MIN_BLOCK`]).
 pub(crate) const BACK_STEPS: usize = 8;
 
-/// Values of R a block reads at least (about 10 µs).
-const MIN_BLOCK: usize = 16384;
+/// Values of R a block reads at least (about 25 µs), so that a small factor's headings take a
+/// step or two.
+const MIN_BLOCK: usize = 32768;
 
 /// The state of a spread back-substitution (module docs).
 #[derive(Clone, Debug)]
@@ -54,11 +55,22 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         }));
     }
 
-    /// Solve the next block of positions (about a [`BACK_STEPS`]-th of R, after the variables
-    /// appended since the last block): whether the solve is complete, None when no solve is
-    /// in progress (none started, or the factor was replaced since).
-    pub fn back_advance(&mut self) -> Option<bool> {
-        self.back_advance_by(((self.len() + self.nnz) / BACK_STEPS).max(MIN_BLOCK))
+    /// Solve the next block of positions (about a [`BACK_STEPS`]-th of R, more at a step
+    /// whose own work `own` was light and less at a heavy one, [`levelled`]; after the
+    /// variables appended since the last block): whether the solve is complete, None when no
+    /// solve is in progress (none started, or the factor was replaced since).
+    pub fn back_advance(&mut self, own: u64) -> Option<bool> {
+        let base = ((self.len() + self.nnz) / BACK_STEPS).max(MIN_BLOCK);
+        self.back_advance_by(self.levelled_block(base, own))
+    }
+
+    /// The share of its usual block a block of [`Self::back_advance`] takes after a step whose
+    /// own work was `own` ([`levelled`]).
+    pub fn back_share(&self, own: u64) -> f64 {
+        levelled(
+            own / L as u64,
+            ((self.len() + self.nnz) / BACK_STEPS).max(MIN_BLOCK),
+        )
     }
 
     /// [`Self::back_advance`] by a block of at least `budget` values of R.

@@ -133,12 +133,14 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         self.spread = None;
     }
 
-    /// Solve the next block of positions (about a [`SPREAD_STEPS`]-th of R); at the end, the
-    /// new right-hand sides replace d's and the spread is over. Whether it is over (true when
-    /// none was in progress).
+    /// Solve the next block of positions (about a [`SPREAD_STEPS`]-th of R, more at a step
+    /// whose own rotations so far were light and less at a heavy one: [`super::levelled`]);
+    /// at the end, the new right-hand sides replace d's and the spread is over. Whether it is
+    /// over (true when none was in progress).
     pub fn spread_advance(&mut self) -> bool {
         let n = self.len();
-        let budget = ((n + self.nnz) / SPREAD_STEPS).max(MIN_BLOCK);
+        let base = ((n + self.nnz) / SPREAD_STEPS).max(MIN_BLOCK);
+        let budget = self.levelled_block(base, self.work);
         let Some(sp) = self.spread.as_mut() else {
             return true;
         };
