@@ -145,9 +145,10 @@ pub struct Counters {
     /// builder still replaying, so waited for it (0 when the builder keeps up: when the edges
     /// come slowly enough for the replays' length).
     pub rebuild_waits: usize,
-    /// Times every position row was re-linearised at the current headings because they had
-    /// moved by more than the bound on the fast answers' heading lag (1 rad; module
-    /// `online::estimate`) since the rows were. Like `estimate_renewals`, it counts the
+    /// Times every position row was re-linearised because the headings had moved by more
+    /// than the bound on the fast answers' heading lag (1 rad; module `online::estimate`)
+    /// since the rows were (counted at the step that rewrites the rows, at headings solved
+    /// over the steps before). Like `estimate_renewals`, it counts the
     /// estimate's work applied so far, which the next read (or loop closure, while the
     /// estimate is read every step) brings up to date. The live steps' only: an eviction's
     /// rebuild, swapped in, goes on from the count of the estimator it replaces (its builder's

@@ -67,9 +67,11 @@ pub struct StreamArgs<'a> {
 /// it (`OnlineEstimator::evicting`: its swap is a later step), and what the estimate's factor
 /// did in it, from the step's change in `Counters`: `renewed` (a renewal of its order
 /// collected), `renewal_waited` (the step waited for that renewal's builder) and
-/// `relinearised` (the headings solved and every position row rewritten at them; the
-/// factor's right-hand sides follow over about the next 16 steps, a forward solve spread a
-/// block of positions a step and counted in their work).
+/// `relinearised` (every position row rewritten at the headings: the last step of a
+/// re-linearisation, whose headings were solved a block of the factor per step over about the
+/// 8 steps before and its rows' measurements over about 4; the factor's right-hand sides
+/// follow over about the next 16 steps, a forward solve spread a block of positions a step;
+/// the blocks are counted in their steps' work).
 /// `OnlineEstimator::counters` reads these after the step's read, which applies them.
 struct Trace {
     out: std::io::BufWriter<std::fs::File>,
