@@ -862,10 +862,12 @@ impl Estimate {
     /// quarter of them), the last of which rewrites the rows in the factor; the factor's
     /// right-hand sides follow over the next steps ([`Laplacian::relinearise`]). Each block
     /// by the step's own work ([`Laplacian::step_share`]: more at a light step, less at a
-    /// heavy one). So no step pays for a whole pass over the factor. The headings' blocks read the factor of their own steps,
-    /// so the headings are those of the first block's step up to what the headings moved
-    /// since (module `back`'s maximum principle), and the rows' lag after it is the bound's
-    /// growth since that step.
+    /// heavy one). So no step pays for a whole pass over the factor. The headings' blocks
+    /// read the factor of their own steps, so the headings are those of the first block's
+    /// step up to what the headings moved since (module `back`'s maximum principle), and the
+    /// rows' lag after it is the bound's growth since that step. A renewal collected in
+    /// between drops it (its rows are at its snapshot's headings, and the bound restarts
+    /// there); a later step starts another if the bound is still passed.
     fn relinearise_over_steps(&mut self, graph: &PoseGraph) {
         match self.relin.take() {
             None => {}
@@ -946,6 +948,8 @@ impl Estimate {
     ) -> Result<(), std::collections::TryReserveError> {
         with_factor!(&mut self.factors, both => both.try_reserve(nodes, edges))?;
         let len = with_factor!(&self.factors, both => both.len());
+        let rows = self.factors.position_rows() + edges;
+        (self.relin_rows).try_reserve(rows.saturating_sub(self.relin_rows.len()))?;
         self.trig.try_reserve(len + nodes)
     }
 

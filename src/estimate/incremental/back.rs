@@ -48,9 +48,13 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     /// solve in progress.
     pub fn back_start(&mut self, q: usize) {
         let n = self.len();
+        // Room for the variables the factor has room for (reserved by its owner), so that
+        // none appended while the solve runs makes a step copy the values.
+        let mut x = Vec::with_capacity(self.capacity().max(n));
+        x.resize(n, 0.0);
         self.back = Some(Box::new(Back {
             q: q.min(K - 1),
-            x: vec![0.0; n],
+            x,
             next: n,
         }));
     }
