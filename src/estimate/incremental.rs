@@ -376,10 +376,16 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     }
 
     /// A block of a pass spread over steps whose usual block is `base` entries, at a step
-    /// whose own work on the factor was `own` values ([`levelled`]; values are entries times
-    /// lanes): at least [`MIN_LEVELLED`] entries.
+    /// whose own work on the factor was `own` values: its share ([`Self::levelled_share`]) of
+    /// `base`, at least [`MIN_LEVELLED`] entries.
     pub(crate) fn levelled_block(&self, base: usize, own: u64) -> usize {
-        ((base as f64 * levelled(own / L as u64, base)) as usize).max(MIN_LEVELLED)
+        ((base as f64 * self.levelled_share(base, own)) as usize).max(MIN_LEVELLED)
+    }
+
+    /// [`levelled`] for a step whose own work on the factor was `own` values (entries times
+    /// lanes), against a usual block of `base` entries.
+    pub(crate) fn levelled_share(&self, base: usize, own: u64) -> f64 {
+        levelled(own / L as u64, base)
     }
 
     /// Nonzeros of R (diagonal included).

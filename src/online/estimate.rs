@@ -374,11 +374,17 @@ fn write_relinearised<const K: usize>(
     }
 }
 
-/// The edges' older ends and measurements, the first `edges` of them.
-fn tails(graph: &PoseGraph, edges: usize) -> impl Iterator<Item = (usize, Pose2)> + '_ {
-    (graph.endpoints().iter().zip(graph.edges()))
-        .take(edges)
-        .map(|(&(a, _), e)| (a, e.measurement()))
+/// The edges' older ends and measurements, of the edges `edges` (those the graph has).
+fn tails(
+    graph: &PoseGraph,
+    edges: std::ops::Range<usize>,
+) -> impl Iterator<Item = (usize, Pose2)> + '_ {
+    let end = edges.end.min(graph.edge_count());
+    let edges = edges.start.min(end)..end;
+    (graph.endpoints()[edges.clone()]
+        .iter()
+        .zip(&graph.edges()[edges]))
+    .map(|(&(a, _), e)| (a, e.measurement()))
 }
 
 /// [`write_relinearised`] as a job for a renewal's builder, which gives it the headings: the
@@ -388,10 +394,9 @@ fn relinearise<const K: usize>(
     edges: usize,
     first: usize,
 ) -> impl FnOnce(&mut [[f64; K]], &[f64]) + Send + 'static {
-    let copied: Vec<(usize, Pose2)> = tails(graph, edges).collect();
+    let copied: Vec<(usize, Pose2)> = tails(graph, 0..edges).collect();
     move |y: &mut [[f64; K]], theta: &[f64]| {
-        let sin_cos = Trig::default().of(theta).to_vec();
-        write_relinearised(y, &sin_cos, copied.into_iter(), first)
+        write_relinearised(y, Trig::default().of(theta), copied.into_iter(), first)
     }
 }
 
@@ -546,7 +551,7 @@ impl Factors {
     fn relinearise_positions(&mut self, graph: &PoseGraph, edges: usize, trig: &mut Trig) {
         with_factor!(self, both => {
             let sin_cos = trig.of(&both.all(0));
-            both.relinearise(|y| write_relinearised(y, sin_cos, tails(graph, edges), 1), 1);
+            both.relinearise(|y| write_relinearised(y, sin_cos, tails(graph, 0..edges), 1), 1);
             both.set_moved(0, 0.0);
         })
     }
@@ -900,9 +905,8 @@ impl Estimate {
                 let share = with_factor!(&self.factors, both => both.step_share());
                 let block = (edges / ROW_STEPS).max(MIN_ROW_BLOCK) as f64 * share;
                 let end = edges.min(next + block as usize);
-                let (ends, measured) = (&graph.endpoints()[next..end], &graph.edges()[next..end]);
-                for (&(a, _), e) in ends.iter().zip(measured) {
-                    let [px, py] = rotated(self.trig.at(a, theta[a]), e.measurement());
+                for (a, z) in tails(graph, next..end) {
+                    let [px, py] = rotated(self.trig.at(a, theta[a]), z);
                     self.relin_rows.push([px, py]);
                 }
                 if end < edges {
@@ -981,7 +985,7 @@ impl Estimate {
         }
         let edges = self.factors.position_rows();
         let [x, y] = with_factor!(&mut self.factors, both => both.all_for(
-            |y| write_relinearised(y, self.trig.of(&theta), tails(graph, edges), 1),
+            |y| write_relinearised(y, self.trig.of(&theta), tails(graph, 0..edges), 1),
             [1, 2],
         ));
         Ok((0..theta.len())

@@ -22,7 +22,7 @@
 //! still to be solved may have gained an entry at them. A factor replaced (a renewal swapped
 //! in, a rebuild) drops the solve with its state.
 
-use super::{PREFETCH_AHEAD, SqrtInfo, lane, levelled};
+use super::{PREFETCH_AHEAD, SqrtInfo, lane};
 
 /// Positions solved per step: a solve ends after about this many steps (fewer when the factor
 /// is small: [`MIN_BLOCK`]).
@@ -60,21 +60,23 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     }
 
     /// Solve the next block of positions (about a [`BACK_STEPS`]-th of R, more at a step
-    /// whose own work `own` was light and less at a heavy one, [`levelled`]; after the
+    /// whose own work `own` was light and less at a heavy one, [`super::levelled`]; after the
     /// variables appended since the last block): whether the solve is complete, None when no
     /// solve is in progress (none started, or the factor was replaced since).
     pub fn back_advance(&mut self, own: u64) -> Option<bool> {
-        let base = ((self.len() + self.nnz) / BACK_STEPS).max(MIN_BLOCK);
-        self.back_advance_by(self.levelled_block(base, own))
+        self.back_advance_by(self.levelled_block(self.back_base(), own))
     }
 
     /// The share of its usual block a block of [`Self::back_advance`] takes after a step whose
-    /// own work was `own` ([`levelled`]).
+    /// own work was `own` ([`super::levelled`]).
     pub fn back_share(&self, own: u64) -> f64 {
-        levelled(
-            own / L as u64,
-            ((self.len() + self.nnz) / BACK_STEPS).max(MIN_BLOCK),
-        )
+        self.levelled_share(self.back_base(), own)
+    }
+
+    /// The usual block of [`Self::back_advance`]: a [`BACK_STEPS`]-th of R, at least
+    /// [`MIN_BLOCK`] entries.
+    fn back_base(&self) -> usize {
+        ((self.len() + self.nnz) / BACK_STEPS).max(MIN_BLOCK)
     }
 
     /// [`Self::back_advance`] by a block of at least `budget` values of R.
