@@ -161,6 +161,17 @@
 //! predictions with a long backlog (module `predict`). Nor does a step copy a growing array
 //! when the caller reserved room for the stream ([`OnlineEstimator::reserve`]).
 //!
+//! **The allocator matters.** The worker frees memory the robot's thread allocated (the
+//! snapshot a renewal starts from, retired factors), and the robot's thread grows and frees
+//! rows the worker allocated. With glibc's malloc both then take the same arena locks: on
+//! M3500 (`so2lin stream`, robot order) the robot's thread slept on them about 70 times a
+//! stream, and the worker was off its core for most of a build's wall time, so collections
+//! waited for it. A program embedding the estimator should use a thread-caching allocator that
+//! frees another thread's memory without a lock, as the `so2lin` tool does (mimalloc, without
+//! transparent huge pages, whose first touch zeroes 2 MiB inside a step: 5–6 ms on the
+//! development VM). With it, M3500's steps took a fifth less time in all and its worst step
+//! 1.1–2.8 ms against 2.5–5.9 ms (five alternating runs each).
+//!
 //! **Idle time** ([`OnlineEstimator::maintain`]): a caller with time between steps (a robot
 //! waiting for its next sensor reading) lets the estimator renew the estimate's factor then, on
 //! its own thread, as soon as [`MAINTAIN_APPENDED`] nodes were appended since the factor's

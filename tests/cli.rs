@@ -449,7 +449,10 @@ fn stream_reserves_the_files_counts_unless_told_not_to() {
 /// `stream --trace FILE` writes one line per step, in the order they ran: every edge of the file
 /// once (by its index in the file), kinds and times that add up to the run's own figures, the
 /// counted work of each step (whose totals are the JSON's), and the steps during which an
-/// eviction's rebuild was in progress. A path it cannot write is refused, naming the option.
+/// eviction's rebuild was in progress, and (Linux) the robot thread's CPU time in each step, at
+/// most its wall time (give or take the clocks' granularity), summed into the JSON's `cpu_us`
+/// and naming the slowest step in `worst_step`. A path it cannot write is refused, naming the
+/// option.
 #[test]
 fn stream_traces_every_step() {
     let g = simulated(
@@ -470,7 +473,7 @@ fn stream_traces_every_step() {
         lines.next(),
         Some(
             "step,edge,kind,ns,search_nodes,estimate_entries,conditioning_entries,rebuilding,\
-             renewed,renewal_waited,relinearised"
+             renewed,renewal_waited,relinearised,cpu_ns"
         )
     );
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
@@ -482,10 +485,24 @@ fn stream_traces_every_step() {
     assert!(edges.iter().enumerate().all(|(i, &e)| e == i as u64));
     let (mut tree, mut quarantined, mut rebuilding, mut ns) = (0, 0, 0, 0u64);
     let mut work = [0u64; 3];
+    // CPU times, and the slowest step by wall time (index, ns, CPU ns).
+    let (mut cpu_ns, mut slowest) = (Vec::new(), (0, 0, 0));
     // Renewals collected, steps that waited for one, re-linearisations.
     let mut factor = [0u64; 3];
     for (k, r) in rows.iter().enumerate() {
-        assert_eq!((r.len(), num(r, 0)), (11, k as u64), "{r:?}");
+        assert_eq!((r.len(), num(r, 0)), (12, k as u64), "{r:?}");
+        if cfg!(target_os = "linux") {
+            // The thread's CPU clock ticks at a coarser grain than the wall clock.
+            let (wall, cpu) = (num(r, 3), num(r, 11));
+            assert!(
+                cpu <= wall + 50_000,
+                "step {k}: {cpu} ns on the CPU in {wall} ns"
+            );
+            cpu_ns.push(cpu);
+            if wall > slowest.1 {
+                slowest = (k, wall, cpu);
+            }
+        }
         match r[2] {
             "tree" => tree += 1,
             "quarantined" => quarantined += 1,
@@ -515,6 +532,25 @@ fn stream_traces_every_step() {
     );
     assert!(v["rebuilds"].as_u64().unwrap() > 0 && rebuilding > 0, "{v}");
     assert_eq!(ns as f64 / 1e9, v["steps_seconds"].as_f64().unwrap());
+    if cfg!(target_os = "linux") {
+        let cpu = &v["cpu_us"];
+        assert_eq!(cpu["count"].as_u64(), Some(n as u64), "{v}");
+        let max = cpu_ns.iter().max().copied().unwrap_or(0);
+        assert_eq!(cpu["max"].as_f64(), Some(max as f64 / 1e3), "{v}");
+        let worst = &v["worst_step"];
+        assert_eq!(worst["step"].as_u64(), Some(slowest.0 as u64), "{v}");
+        assert_eq!(worst["ms"].as_f64(), Some(slowest.1 as f64 / 1e6), "{v}");
+        assert_eq!(
+            worst["cpu_ms"].as_f64(),
+            Some(slowest.2 as f64 / 1e6),
+            "{v}"
+        );
+        let max_us = v["latency_us"]["all"]["max"].as_f64().unwrap();
+        assert!(
+            (worst["ms"].as_f64().unwrap() * 1e3 - max_us).abs() < 1e-6,
+            "{v}"
+        );
+    }
     for (w, key) in work
         .iter()
         .zip(["search_nodes", "estimate_entries", "conditioning_entries"])

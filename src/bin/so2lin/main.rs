@@ -22,6 +22,17 @@ use so2lin::batch::BatchConfig;
 use so2lin::online::OnlineConfig;
 use so2lin::sim::{OutlierConfig, SimConfig};
 
+/// The tool's allocator: mimalloc, whose threads allocate from their own heaps and free
+/// another thread's memory without a lock. With glibc's malloc, the renewal builder (which
+/// frees the snapshot the robot's thread copied, and the retired factors) and the robot's
+/// thread took turns on the same arena lock: on M3500 the robot's thread slept on it about 70
+/// times a stream and the builder about 100, the builder was off its core for most of its
+/// builds' wall time, and collections waited for it (`benches/MEASUREMENTS.md`, fortieth
+/// session). A program embedding the estimator chooses its own allocator; the crate's docs
+/// say why a thread-caching one matters (`so2lin::online`).
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 /// A one-line error for the user.
 type CliResult = Result<(), String>;
 

@@ -71,7 +71,9 @@ pub struct StreamArgs<'a> {
 /// re-linearisation, whose headings were solved a block of the factor per step over about the
 /// 8 steps before and its rows' measurements over about 4; the factor's right-hand sides
 /// follow over about the next 16 steps, a forward solve spread a block of positions a step;
-/// the blocks are counted in their steps' work).
+/// the blocks are counted in their steps' work), and the robot thread's CPU time in the step in
+/// ns ([`thread_cpu_ns`]; empty where the clock is not read): `ns` less `cpu_ns` is the time the
+/// thread was off its core in the step.
 /// `OnlineEstimator::counters` reads these after the step's read, which applies them.
 struct Trace {
     out: std::io::BufWriter<std::fs::File>,
@@ -79,7 +81,7 @@ struct Trace {
 }
 
 impl Trace {
-    const HEADER: &'static str = "step,edge,kind,ns,search_nodes,estimate_entries,conditioning_entries,rebuilding,renewed,renewal_waited,relinearised";
+    const HEADER: &'static str = "step,edge,kind,ns,search_nodes,estimate_entries,conditioning_entries,rebuilding,renewed,renewal_waited,relinearised,cpu_ns";
 
     fn create(path: &Path) -> Result<Self, String> {
         let file =
@@ -181,6 +183,42 @@ impl Latency {
     }
 }
 
+/// The calling thread's CPU time in ns (Linux: `CLOCK_THREAD_CPUTIME_ID`; None elsewhere or
+/// when refused). A step's wall time less its CPU time is the time the robot's thread was off
+/// its core inside the step: waiting for a builder, or preempted — by the OS, or, on a virtual
+/// machine, by the host, which steals the virtual core (on the development VM, two busy
+/// threads each lost their core for 1–40 ms several times a second, one busy thread never for
+/// more than 0.3 ms; `benches/MEASUREMENTS.md`, fortieth session). The clock is read outside the
+/// step's timed window (about 0.5 µs a read there: a system call).
+pub fn thread_cpu_ns() -> Option<u64> {
+    #[cfg(target_os = "linux")]
+    {
+        let mut t = libc::timespec {
+            tv_sec: 0,
+            tv_nsec: 0,
+        };
+        // SAFETY: clock_gettime writes only the timespec we pass by pointer.
+        let ok = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut t) } == 0;
+        let secs = u64::try_from(t.tv_sec).ok()?;
+        let nanos = u64::try_from(t.tv_nsec).ok()?;
+        ok.then(|| secs.saturating_mul(1_000_000_000).saturating_add(nanos))
+    }
+    #[cfg(not(target_os = "linux"))]
+    None
+}
+
+/// The slowest step: its index, wall time and the robot thread's CPU time in it.
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct WorstStep {
+    /// Index of the step (0-based, in the order streamed).
+    pub step: usize,
+    /// Its wall time, ms (the `max` of `latency_us`).
+    pub ms: f64,
+    /// The robot thread's CPU time in it, ms (None where the clock is not read): the rest is
+    /// time off the core, waiting for a builder or preempted.
+    pub cpu_ms: Option<f64>,
+}
+
 /// Peak resident set size of this process, from the OS (Linux: VmHWM), in bytes.
 pub fn peak_rss_bytes() -> Option<u64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
@@ -241,6 +279,9 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     let mut maintenance = MaintenanceCost::default();
     let mut trace = args.trace.map(Trace::create).transpose()?;
     let mut counted = est.counters();
+    // The robot thread's CPU time per step, and the slowest step (index, ns, CPU ns).
+    let mut cpu = Vec::new();
+    let mut worst: (usize, u64, Option<u64>) = (0, 0, None);
     for (k, &edge) in edges.iter().enumerate() {
         if let Some(hz) = args.rate {
             let arrival = std::time::Duration::from_secs_f64(k as f64 / hz);
@@ -251,6 +292,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             }
         }
         let w0 = so2lin::work::on_this_thread();
+        let c0 = thread_cpu_ns();
         let t = Instant::now();
         let step = est.add_edge(edge).map_err(|e| e.to_string())?;
         match args.estimate {
@@ -266,6 +308,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             }
         }
         let ns = t.elapsed().as_nanos() as u64;
+        let cpu_ns = c0.zip(thread_cpu_ns()).map(|(a, b)| b.saturating_sub(a));
         let w = so2lin::work::on_this_thread().since(w0);
         work[0].push(w.search_nodes);
         work[1].push(w.estimate_entries);
@@ -294,7 +337,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             };
             let now = est.counters();
             t.line(format_args!(
-                "{k},{},{kind},{ns},{},{},{},{},{},{},{}",
+                "{k},{},{kind},{ns},{},{},{},{},{},{},{},{}",
                 file_index[k],
                 w.search_nodes,
                 w.estimate_entries,
@@ -304,8 +347,15 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
                     .saturating_sub(counted.estimate_renewals),
                 now.renewal_waits.saturating_sub(counted.renewal_waits),
                 (now.estimate_relinearisations).saturating_sub(counted.estimate_relinearisations),
+                cpu_ns.map_or(String::new(), |c| c.to_string()),
             ))?;
             counted = now;
+        }
+        if ns > worst.1 {
+            worst = (k, ns, cpu_ns);
+        }
+        if let Some(c) = cpu_ns {
+            cpu.push(c);
         }
         all.push(ns);
         match step.kind {
@@ -365,11 +415,24 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         ("cycle", Latency::of(cyc)),
     ];
     let [search, estimate, conditioning] = work.map(WorkPerStep::of);
+    // CPU times only when every step has one (a clock that failed once would skew them).
+    let steps = lat[0].1.count;
+    let cpu = (steps > 0 && cpu.len() == steps).then(|| Latency::of(cpu));
+    let worst = (steps > 0).then(|| WorstStep {
+        step: worst.0,
+        ms: worst.1 as f64 / 1e6,
+        cpu_ms: worst.2.map(|c| c as f64 / 1e6),
+    });
     let total = start.elapsed().as_secs_f64();
     let rss = peak_rss_bytes();
     if args.json {
         let latency: serde_json::Map<String, Value> =
             lat.iter().map(|(k, l)| (k.to_string(), json!(l))).collect();
+        let hypotheses: Vec<Value> = result
+            .hypotheses
+            .iter()
+            .map(|h| json!({"chi2": h.chi2, "p_value": h.p_value}))
+            .collect();
         let v = json!({
             "file": args.file.display().to_string(),
             "config": args.config,
@@ -399,6 +462,8 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "rebuilds_from_checkpoint": c.rebuilds_from_checkpoint,
             "replayed_arrivals": c.replayed_arrivals,
             "latency_us": latency,
+            "cpu_us": cpu,
+            "worst_step": worst,
             "work_per_step": {
                 "search_nodes": search,
                 "estimate_entries": estimate,
@@ -411,7 +476,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "peak_rss_bytes": rss,
             "log_backpressure": backpressure,
             "outcome": result.outcome,
-            "hypotheses": result.hypotheses.iter().map(|h| json!({"chi2": h.chi2, "p_value": h.p_value})).collect::<Vec<_>>(),
+            "hypotheses": hypotheses,
             "success_probability_lower_bound": result.success_lower_bound,
         });
         println!("{v}");
@@ -455,6 +520,24 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             "  {name:<6} ({:>6} steps) {:>9.2} {:>9.2} {:>9.2} {:>9.2} {:>9.2}",
             l.count, l.p50, l.p90, l.p99, l.max, l.mean
         );
+    }
+    if let Some(l) = cpu {
+        println!(
+            "  cpu    ({:>6} steps) {:>9.2} {:>9.2} {:>9.2} {:>9.2} {:>9.2}   (all steps, on the CPU: the robot thread's CPU time)",
+            l.count, l.p50, l.p90, l.p99, l.max, l.mean
+        );
+    }
+    if let Some(w) = worst {
+        match w.cpu_ms {
+            Some(c) => println!(
+                "  the worst step, #{}: {:.3} ms, {:.3} ms of it on the CPU ({:.3} ms off it: waiting for a builder, or preempted)",
+                w.step,
+                w.ms,
+                c,
+                (w.ms - c).max(0.0)
+            ),
+            None => println!("  the worst step, #{}: {:.3} ms", w.step, w.ms),
+        }
     }
     println!("work per step (counted: the same in every run, on any machine):");
     println!("                                  p50       p90       p99     worst        total");
