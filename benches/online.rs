@@ -17,6 +17,12 @@
 //!   `poses_after_loop_closure` the same with `poses()` (one forward and one
 //!   back-substitution); `newest_after_odometry`: an odometry step followed by `newest()`.
 
+/// The allocator of the `so2lin` tool (mimalloc, without transparent huge pages), so that the
+/// benchmark measures the steps as `so2lin stream` does: with glibc's malloc the renewal
+/// builder and the robot's thread wait for each other's arena locks (module `so2lin::online`).
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 use std::hint::black_box;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
