@@ -417,12 +417,22 @@ fn the_fast_pose_stays_near_the_exact_one_across_renewals() {
 /// with it 2.3 m (5.6).
 #[test]
 fn big_heading_corrections_re_linearise_the_positions() {
-    let Some(path) = common::dataset("MIT.g2o") else {
+    fast_pose_stays_near("MIT.g2o", 0, 5.0);
+}
+
+/// On the dataset `name` (skipped when absent): more than `relinearisations`
+/// re-linearisations, and the fast newest pose less than `bound` m from the exact one on
+/// average ([`fast_pose_error`]).
+fn fast_pose_stays_near(name: &str, relinearisations: usize, bound: f64) {
+    let Some(path) = common::dataset(name) else {
         return;
     };
     let (mean, c) = fast_pose_error(&path);
-    eprintln!("MIT: fast pose {mean} m from the exact one on average; {c:?}");
-    assert!(c.estimate_relinearisations > 0 && mean < 5.0, "{mean} m");
+    eprintln!("{name}: fast pose {mean} m from the exact one on average; {c:?}");
+    assert!(
+        c.estimate_relinearisations > relinearisations && mean < bound,
+        "{name}: {mean} m"
+    );
 }
 
 /// The mean distance of the fast newest pose to the exact one, sampled every 25 steps of the
@@ -451,12 +461,7 @@ fn fast_pose_error(path: &std::path::Path) -> (f64, so2lin::online::Counters) {
 /// when the headings and rows were made in one step, 0.24 m without re-linearising).
 #[test]
 fn m3500s_fast_pose_stays_near_the_exact_one() {
-    let Some(path) = common::dataset("M3500.g2o") else {
-        return;
-    };
-    let (mean, c) = fast_pose_error(&path);
-    eprintln!("M3500: fast pose {mean} m from the exact one on average; {c:?}");
-    assert!(c.estimate_relinearisations > 40 && mean < 0.055, "{mean} m");
+    fast_pose_stays_near("M3500.g2o", 40, 0.055);
 }
 
 /// Idle time between steps (`OnlineEstimator::maintain` after every step) renews the

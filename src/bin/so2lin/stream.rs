@@ -279,9 +279,8 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     let mut maintenance = MaintenanceCost::default();
     let mut trace = args.trace.map(Trace::create).transpose()?;
     let mut counted = est.counters();
-    // The robot thread's CPU time per step, and the slowest step (index, ns, CPU ns).
-    let mut cpu = Vec::new();
-    let mut worst: (usize, u64, Option<u64>) = (0, 0, None);
+    // The robot thread's CPU time per step (None where the clock was not read), beside `all`.
+    let mut cpu: Vec<Option<u64>> = Vec::new();
     for (k, &edge) in edges.iter().enumerate() {
         if let Some(hz) = args.rate {
             let arrival = std::time::Duration::from_secs_f64(k as f64 / hz);
@@ -351,12 +350,7 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
             ))?;
             counted = now;
         }
-        if ns > worst.1 {
-            worst = (k, ns, cpu_ns);
-        }
-        if let Some(c) = cpu_ns {
-            cpu.push(c);
-        }
+        cpu.push(cpu_ns);
         all.push(ns);
         match step.kind {
             StepKind::Tree { .. } => tree.push(ns),
@@ -409,6 +403,17 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
         })
         .collect();
     let steps_s = all.iter().sum::<u64>() as f64 / 1e9;
+    // The slowest step (the first, on a tie) with its CPU time.
+    let worst = all
+        .iter()
+        .enumerate()
+        .rev()
+        .max_by_key(|&(_, &ns)| ns)
+        .map(|(k, &ns)| WorstStep {
+            step: k,
+            ms: ns as f64 / 1e6,
+            cpu_ms: cpu[k].map(|c| c as f64 / 1e6),
+        });
     let lat = [
         ("all", Latency::of(all)),
         ("tree", Latency::of(tree)),
@@ -416,13 +421,11 @@ pub fn run(args: StreamArgs) -> Result<(), String> {
     ];
     let [search, estimate, conditioning] = work.map(WorkPerStep::of);
     // CPU times only when every step has one (a clock that failed once would skew them).
-    let steps = lat[0].1.count;
-    let cpu = (steps > 0 && cpu.len() == steps).then(|| Latency::of(cpu));
-    let worst = (steps > 0).then(|| WorstStep {
-        step: worst.0,
-        ms: worst.1 as f64 / 1e6,
-        cpu_ms: worst.2.map(|c| c as f64 / 1e6),
-    });
+    let cpu = cpu
+        .into_iter()
+        .collect::<Option<Vec<u64>>>()
+        .filter(|c| !c.is_empty())
+        .map(Latency::of);
     let total = start.elapsed().as_secs_f64();
     let rss = peak_rss_bytes();
     if args.json {
