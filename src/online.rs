@@ -197,6 +197,7 @@ mod rebuild;
 mod renewal;
 mod reorder;
 mod replay;
+mod snapshot;
 mod step;
 
 pub use config::{OnlineConfig, OnlineError};

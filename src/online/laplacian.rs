@@ -44,6 +44,7 @@ use renew::{BuildOrder, LARGE_FACTOR, Msg, Renewal, build};
 pub(crate) use renew::{MIN_DELAY, RenewalEvent};
 
 use super::renewal::{Due, Worker};
+use super::snapshot::Chunked;
 use crate::estimate::incremental::{Dissection, Lanes, Leftover, SqrtInfo, lane};
 use crate::graph::UnionFind;
 use std::sync::Arc;
@@ -56,22 +57,25 @@ const ADOPT_CHANGES_FRACTION: usize = 16;
 /// See [`ADOPT_CHANGES_FRACTION`].
 const ADOPT_MIN_CHANGES: usize = 32;
 
-/// The data a factor is built from (a snapshot goes to the builder thread).
+/// The data a factor is built from (a snapshot goes to the builder thread), kept as shared
+/// chunks ([`Chunked`]): a renewal's snapshot, or a re-linearisation's rows handed to its
+/// builder, costs a pointer per chunk on the robot's thread, and a write into a shared chunk
+/// copies that chunk.
 #[derive(Clone)]
 struct Rows<const K: usize, const L: usize> {
-    ends: Vec<(u32, u32)>,
+    ends: Chunked<(u32, u32)>,
     /// `√w_e` of every edge, per lane.
-    sqrt_w: Vec<[f64; L]>,
+    sqrt_w: Chunked<[f64; L]>,
     /// `y_e` of every edge.
-    y: Vec<[f64; K]>,
+    y: Chunked<[f64; K]>,
 }
 
 impl<const K: usize, const L: usize> Default for Rows<K, L> {
     fn default() -> Self {
         Self {
-            ends: Vec::new(),
-            sqrt_w: Vec::new(),
-            y: Vec::new(),
+            ends: Chunked::default(),
+            sqrt_w: Chunked::default(),
+            y: Chunked::default(),
         }
     }
 }
@@ -85,6 +89,15 @@ impl<const K: usize, const L: usize> Rows<K, L> {
 
     fn rhs(&self, e: usize) -> [f64; K] {
         std::array::from_fn(|q| self.sqrt_w[e][lane::<L>(q)] * self.y[e][q])
+    }
+
+    /// Every edge's `(entries, rhs)` in order (what [`Self::entries`] and [`Self::rhs`] give
+    /// edge by edge), walking the chunks rather than indexing them.
+    fn each(&self) -> impl Iterator<Item = ([(usize, [f64; L]); 2], [f64; K])> + Clone + '_ {
+        (self.ends.iter().zip(self.sqrt_w.iter()).zip(self.y.iter())).map(|((&(a, b), &s), y)| {
+            let rhs = std::array::from_fn(|q| s[lane::<L>(q)] * y[q]);
+            ([(a as usize, s.map(|s| -s)), (b as usize, s)], rhs)
+        })
     }
 
     /// How edge e's right-hand side moves when its measurement goes from `old` to `new`.
@@ -103,7 +116,8 @@ pub(crate) struct Laplacian<const K: usize, const L: usize = 1> {
     /// The weight of each node's anchor prior (0: none). The prior takes the square-root
     /// weight of the component's first edge, so the component's common mode is as well
     /// determined as its differences (a weak prior would collect the rounding errors there).
-    prior: Vec<[f64; L]>,
+    /// Shared chunks, as the rows: a renewal's snapshot takes them at a pointer per chunk.
+    prior: Chunked<[f64; L]>,
     /// The prior weight each node was (or would be) given as an anchor.
     first_weight: Vec<[f64; L]>,
     fill_after_renewal: f64,
@@ -159,7 +173,7 @@ impl<const K: usize, const L: usize> Default for Laplacian<K, L> {
             rows: Rows::default(),
             components: UnionFind::new(0),
             anchor: Vec::new(),
-            prior: Vec::new(),
+            prior: Chunked::default(),
             first_weight: Vec::new(),
             fill_after_renewal: 0.0,
             nodes_at_renewal: 0,
@@ -412,7 +426,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     /// back-substitution per column.
     pub fn all_for<const M: usize>(
         &mut self,
-        relinearise: impl FnOnce(&mut [[f64; K]]),
+        relinearise: impl FnOnce(&mut Chunked<[f64; K]>),
         columns: [usize; M],
     ) -> [Vec<f64>; M] {
         let saved_y = self.rows.y.clone();
@@ -490,7 +504,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
             }
         }
         for x in xs {
-            for (xv, &p) in x.iter_mut().zip(&self.prior) {
+            for (xv, &p) in x.iter_mut().zip(self.prior.iter()) {
                 if p != [0.0; L] {
                     *xv = 0.0;
                 }
@@ -603,7 +617,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
             }
         }
         let n = self.len();
-        let priors = |p: &[[f64; L]], v: usize| p.get(v).copied().unwrap_or([0.0; L]);
+        let priors = |p: &Chunked<[f64; L]>, v: usize| p.get(v).copied().unwrap_or([0.0; L]);
         let moved_priors: Vec<usize> = (0..n)
             .filter(|&v| priors(&self.prior, v) != priors(&old.prior, v))
             .collect();
@@ -639,10 +653,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         // The headings' right-hand side now; the others lag until the next flush
         // ([`Self::flush_rhs`]: a replay's rebuild re-linearises them first, and computing
         // them here too was a second pass).
-        factor.reset_rhs_in(
-            0..1,
-            (0..self.rows.ends.len()).map(|e| (self.rows.entries(e), self.rows.rhs(e))),
-        );
+        factor.reset_rhs_in(0..1, self.rows.each());
         factor.take_work();
         self.factor = factor;
         self.stale_rhs = (K > 1).then_some(1);
@@ -680,7 +691,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     /// for a whole pass over the factor, nor for both it and the back-substitution that gave
     /// the headings: module `estimate::incremental::spread`); until it ends the factor answers
     /// with the rows as they were. The factor's order and values stay.
-    pub fn relinearise(&mut self, relinearise: impl FnOnce(&mut [[f64; K]]), from: usize) {
+    pub fn relinearise(&mut self, relinearise: impl FnOnce(&mut Chunked<[f64; K]>), from: usize) {
         relinearise(&mut self.rows.y);
         // A spread in progress solved for the rows' old measurements.
         self.factor.spread_cancel();
@@ -702,10 +713,7 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         };
         if !self.factor.spreading(from) {
             let rows = &self.rows;
-            (self.factor).spread_start(
-                from,
-                (0..rows.ends.len()).map(|e| (rows.entries(e), rows.rhs(e))),
-            );
+            (self.factor).spread_start(from, rows.each());
         }
         if self.factor.spread_advance() {
             self.stale_rhs = None;
@@ -792,10 +800,7 @@ fn reset_rhs<const K: usize, const L: usize>(
     rows: &Rows<K, L>,
     from: usize,
 ) {
-    f.reset_rhs_from(
-        from,
-        (0..rows.ends.len()).map(|e| (rows.entries(e), rows.rhs(e))),
-    );
+    f.reset_rhs_from(from, rows.each());
 }
 
 #[cfg(test)]
@@ -890,7 +895,7 @@ mod tests {
     }
 
     /// A re-linearisation's job: every position measurement turned by 0.3 rad.
-    fn turned(y: &mut [[f64; 3]]) {
+    fn turned(y: &mut Chunked<[f64; 3]>) {
         let (s, c) = 0.3f64.sin_cos();
         for r in y.iter_mut() {
             let [x, y] = [r[1], r[2]];
