@@ -92,11 +92,20 @@ impl<const K: usize, const L: usize> Rows<K, L> {
     }
 
     /// Every edge's `(entries, rhs)` in order (what [`Self::entries`] and [`Self::rhs`] give
-    /// edge by edge), walking the chunks rather than indexing them.
+    /// edge by edge), walking the three arrays a chunk at a time, side by side (their chunks
+    /// have the same lengths): indexing them, or zipping their element iterators, took about
+    /// twice as long over city10000's rows.
     fn each(&self) -> impl Iterator<Item = ([(usize, [f64; L]); 2], [f64; K])> + Clone + '_ {
-        (self.ends.iter().zip(self.sqrt_w.iter()).zip(self.y.iter())).map(|((&(a, b), &s), y)| {
-            let rhs = std::array::from_fn(|q| s[lane::<L>(q)] * y[q]);
-            ([(a as usize, s.map(|s| -s)), (b as usize, s)], rhs)
+        let slices = self
+            .ends
+            .slices()
+            .zip(self.sqrt_w.slices())
+            .zip(self.y.slices());
+        slices.flat_map(|((ends, sqrt_w), y)| {
+            (ends.iter().zip(sqrt_w).zip(y)).map(|((&(a, b), &s), y)| {
+                let rhs = std::array::from_fn(|q| s[lane::<L>(q)] * y[q]);
+                ([(a as usize, s.map(|s| -s)), (b as usize, s)], rhs)
+            })
         })
     }
 

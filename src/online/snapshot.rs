@@ -116,6 +116,13 @@ impl<T: Copy> Chunked<T> {
         (self.full.iter().flat_map(|c| c.iter())).chain(self.tail.iter())
     }
 
+    /// The elements as slices in order: the full chunks, then the tail. Two arrays of the same
+    /// length have the same slices' lengths, so they can be walked side by side a slice at a
+    /// time ([`Iterator::zip`] of slices, which the compiler makes one loop).
+    pub fn slices(&self) -> impl Iterator<Item = &[T]> + Clone + '_ {
+        (self.full.iter().map(|c| c.as_slice())).chain(std::iter::once(self.tail.as_slice()))
+    }
+
     /// The elements in order, to write (every shared chunk copied first).
     pub fn iter_mut(&mut self) -> impl Iterator<Item = &mut T> + '_ {
         (self.full.iter_mut().flat_map(|c| owned(c).iter_mut())).chain(self.tail.iter_mut())
