@@ -18,6 +18,11 @@
 //! the tail and touch no reference count. With it the same starts took 0.03–0.16 ms on
 //! city10000 (median 0.06) and 0.02–0.17 ms on the 100 000-pose world.
 //!
+//! A pass over every element walks the slices ([`Chunked::slices`]), side by side for arrays of
+//! one length; over city10000's 20 000 rows such a pass took 109–112 µs against 90–95 over plain
+//! vectors (best of five repetitions): the price of the shared chunks, paid by the passes a
+//! re-linearisation and a build make, where the start saved a copy of every row.
+//!
 //! Elements are only appended or removed at the end, and read or written in place: what the
 //! rows need. Written by hand: the crates of persistent vectors (`imbl`, `rpds`) are trees with
 //! a path per element and no contiguous chunks to walk; this is a list of shared slices.
