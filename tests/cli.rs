@@ -485,19 +485,22 @@ fn stream_traces_every_step() {
     assert!(edges.iter().enumerate().all(|(i, &e)| e == i as u64));
     let (mut tree, mut quarantined, mut rebuilding, mut ns) = (0, 0, 0, 0u64);
     let mut work = [0u64; 3];
-    // CPU times, and the slowest step by wall time (index, ns, CPU ns).
+    // CPU times, and the slowest step by wall time (index, ns, CPU ns); the steps whose CPU time
+    // passed their wall time by more than the clock's grain, and the sums of both.
     let (mut cpu_ns, mut slowest) = (Vec::new(), (0, 0, 0));
+    let (mut over, mut wall_sum, mut cpu_sum) = (0usize, 0u64, 0u64);
     // Renewals collected, steps that waited for one, re-linearisations.
     let mut factor = [0u64; 3];
     for (k, r) in rows.iter().enumerate() {
         assert_eq!((r.len(), num(r, 0)), (12, k as u64), "{r:?}");
         if cfg!(target_os = "linux") {
-            // The thread's CPU clock ticks at a coarser grain than the wall clock.
+            // The thread's CPU clock ticks at a coarser grain than the wall clock, and its reads
+            // sit just outside the step's timed window: an interrupt or a fault the kernel
+            // accounts to the thread in one of them counts in the CPU time only (one step of
+            // 400 showed 91 µs on the CPU in 11 µs of wall time, once in many runs).
             let (wall, cpu) = (num(r, 3), num(r, 11));
-            assert!(
-                cpu <= wall + 50_000,
-                "step {k}: {cpu} ns on the CPU in {wall} ns"
-            );
+            over += usize::from(cpu > wall + 50_000);
+            (wall_sum, cpu_sum) = (wall_sum + wall, cpu_sum + cpu);
             cpu_ns.push(cpu);
             if wall > slowest.1 {
                 slowest = (k, wall, cpu);
@@ -533,6 +536,16 @@ fn stream_traces_every_step() {
     assert!(v["rebuilds"].as_u64().unwrap() > 0 && rebuilding > 0, "{v}");
     assert_eq!(ns as f64 / 1e9, v["steps_seconds"].as_f64().unwrap());
     if cfg!(target_os = "linux") {
+        // A step's CPU time, not a running total, nor the wall time: at most about a step in a
+        // hundred over its wall time, and in all no more than the wall time and the grain.
+        assert!(
+            over * 100 <= n,
+            "{over} of {n} steps with more CPU than wall time"
+        );
+        assert!(
+            cpu_sum <= wall_sum + 50_000 * n as u64,
+            "{cpu_sum} > {wall_sum}"
+        );
         let cpu = &v["cpu_us"];
         assert_eq!(cpu["count"].as_u64(), Some(n as u64), "{v}");
         let max = cpu_ns.iter().max().copied().unwrap_or(0);
