@@ -268,8 +268,6 @@ pub(crate) struct SqrtInfo<const K: usize, const L: usize = 1> {
     recording: bool,
     /// A forward solve of new right-hand sides spread over steps (module `spread`).
     spread: Option<Box<Spread<K, L>>>,
-    /// The last spread's arrays, kept for their room when it ended ([`Self::spread_start`]).
-    spread_room: Option<Box<Spread<K, L>>>,
     /// A back-substitution spread over steps (module `back`).
     back: Option<Box<back::Back>>,
 }
@@ -329,7 +327,6 @@ impl<const K: usize, const L: usize> Default for SqrtInfo<K, L> {
             undo: None,
             recording: false,
             spread: None,
-            spread_room: None,
             back: None,
         }
     }
@@ -658,20 +655,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         columns: std::ops::Range<usize>,
         rows: impl IntoIterator<Item = ([(usize, C); N], [f64; K])>,
     ) -> Vec<[f64; K]> {
-        let mut g = Vec::new();
-        self.information_into(&mut g, columns, rows);
-        g
-    }
-
-    /// [`Self::information`] into `g` (its room reused).
-    fn information_into<const N: usize, C: Lanes<L>>(
-        &self,
-        g: &mut Vec<[f64; K]>,
-        columns: std::ops::Range<usize>,
-        rows: impl IntoIterator<Item = ([(usize, C); N], [f64; K])>,
-    ) {
-        g.clear();
-        g.resize(self.len(), [0.0; K]);
+        let mut g = vec![[0.0; K]; self.len()];
         // (Internal iteration: a chained or flattened source runs as loops over its parts.)
         rows.into_iter().for_each(|(entries, beta)| {
             for (v, a) in entries {
@@ -682,6 +666,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
                 }
             }
         });
+        g
     }
 
     /// [`Self::reset_rhs`] for the right-hand sides `columns` only (the others are kept).

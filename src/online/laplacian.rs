@@ -57,6 +57,18 @@ const ADOPT_CHANGES_FRACTION: usize = 16;
 /// See [`ADOPT_CHANGES_FRACTION`].
 const ADOPT_MIN_CHANGES: usize = 32;
 
+/// Edge a → b's row `√w (x_b − x_a)`: its entries.
+#[inline]
+fn row_entries<const L: usize>((a, b): (u32, u32), s: [f64; L]) -> [(usize, [f64; L]); 2] {
+    [(a as usize, s.map(|s| -s)), (b as usize, s)]
+}
+
+/// An edge's row's right-hand side `√w y`, per right-hand side (its lane's weight).
+#[inline]
+fn row_rhs<const K: usize, const L: usize>(s: [f64; L], y: [f64; K]) -> [f64; K] {
+    std::array::from_fn(|q| s[lane::<L>(q)] * y[q])
+}
+
 /// The data a factor is built from (a snapshot goes to the builder thread), kept as shared
 /// chunks ([`Chunked`]): a renewal's snapshot, or a re-linearisation's rows handed to its
 /// builder, costs a pointer per chunk on the robot's thread, and a write into a shared chunk
@@ -82,19 +94,18 @@ impl<const K: usize, const L: usize> Default for Rows<K, L> {
 
 impl<const K: usize, const L: usize> Rows<K, L> {
     fn entries(&self, e: usize) -> [(usize, [f64; L]); 2] {
-        let (a, b) = self.ends[e];
-        let s = self.sqrt_w[e];
-        [(a as usize, s.map(|s| -s)), (b as usize, s)]
+        row_entries(self.ends[e], self.sqrt_w[e])
     }
 
     fn rhs(&self, e: usize) -> [f64; K] {
-        std::array::from_fn(|q| self.sqrt_w[e][lane::<L>(q)] * self.y[e][q])
+        row_rhs(self.sqrt_w[e], self.y[e])
     }
 
     /// Every edge's `(entries, rhs)` in order (what [`Self::entries`] and [`Self::rhs`] give
     /// edge by edge), walking the three arrays a chunk at a time, side by side (their chunks
-    /// have the same lengths): indexing them, or zipping their element iterators, took about
-    /// twice as long over city10000's rows.
+    /// have the same lengths): zipping their element iterators took 175 µs over city10000's
+    /// 20 000 rows, against 109–112 µs this way (`benches/MEASUREMENTS.md`, forty-first
+    /// session).
     fn each(&self) -> impl Iterator<Item = ([(usize, [f64; L]); 2], [f64; K])> + Clone + '_ {
         let slices = self
             .ends
@@ -102,10 +113,8 @@ impl<const K: usize, const L: usize> Rows<K, L> {
             .zip(self.sqrt_w.slices())
             .zip(self.y.slices());
         slices.flat_map(|((ends, sqrt_w), y)| {
-            (ends.iter().zip(sqrt_w).zip(y)).map(|((&(a, b), &s), y)| {
-                let rhs = std::array::from_fn(|q| s[lane::<L>(q)] * y[q]);
-                ([(a as usize, s.map(|s| -s)), (b as usize, s)], rhs)
-            })
+            (ends.iter().zip(sqrt_w).zip(y))
+                .map(|((&ends, &s), &y)| (row_entries(ends, s), row_rhs(s, y)))
         })
     }
 

@@ -71,11 +71,6 @@ impl<T: Copy> Clone for Chunked<T> {
     }
 }
 
-/// A full chunk, unshared: copied first if another array shares it.
-fn owned<T: Copy>(chunk: &mut Arc<Vec<T>>) -> &mut Vec<T> {
-    Arc::make_mut(chunk)
-}
-
 impl<T: Copy> Chunked<T> {
     /// Number of elements.
     pub fn len(&self) -> usize {
@@ -130,7 +125,11 @@ impl<T: Copy> Chunked<T> {
 
     /// The elements in order, to write (every shared chunk copied first).
     pub fn iter_mut(&mut self) -> impl Iterator<Item = &mut T> + '_ {
-        (self.full.iter_mut().flat_map(|c| owned(c).iter_mut())).chain(self.tail.iter_mut())
+        (self
+            .full
+            .iter_mut()
+            .flat_map(|c| Arc::make_mut(c).iter_mut()))
+        .chain(self.tail.iter_mut())
     }
 
     /// Room for `additional` more elements: the tail's and spare chunks' allocated ahead, so
@@ -179,7 +178,8 @@ impl<T: Copy> std::ops::IndexMut<usize> for Chunked<T> {
     fn index_mut(&mut self, i: usize) -> &mut T {
         let full = self.full.len();
         match self.full.get_mut(i / CHUNK) {
-            Some(chunk) => &mut owned(chunk)[i % CHUNK],
+            // A shared chunk is copied first.
+            Some(chunk) => &mut Arc::make_mut(chunk)[i % CHUNK],
             None => &mut self.tail[i - full * CHUNK],
         }
     }

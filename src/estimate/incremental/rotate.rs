@@ -135,7 +135,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     }
 
     /// Take over `old`'s scratch buffers (the row being rotated, its next state, the aligned
-    /// values, the spare row, the tried row's undo record, the last spread's arrays), emptied, their capacity kept, when
+    /// values, the spare row, the tried row's undo record), emptied, their capacity kept, when
     /// this factor replaces `old` (a renewal swapped in). A fresh factor's buffers start empty
     /// and grow by doubling in the steps after the swap, each growth a copy into memory the
     /// allocator must first fault in: the undo record of a heavy loop closure holds every row
@@ -160,10 +160,6 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         }
         emptied(&mut self.aligned, &mut old.aligned);
         emptied(&mut self.path, &mut old.path);
-        // The last spread's arrays (their room: module `spread`).
-        if self.spread_room.is_none() {
-            self.spread_room = old.spread_room.take();
-        }
         let room = |u: &Option<Box<Undo<K, L>>>| u.as_ref().map_or(0, |u| u.values.capacity());
         let idle = |u: &Option<Box<Undo<K, L>>>| u.as_ref().is_none_or(|u| !u.active);
         if idle(&self.undo) && idle(&old.undo) && room(&old.undo) > room(&self.undo) {

@@ -64,23 +64,6 @@ pub(super) struct Spread<const K: usize, const L: usize> {
 }
 
 impl<const K: usize, const L: usize> Spread<K, L> {
-    /// No positions yet ([`SqrtInfo::spread_start`] sets it up).
-    fn empty() -> Self {
-        Self {
-            from: 0,
-            p: 0,
-            d_new: Vec::new(),
-            h: Vec::new(),
-            log: Vec::new(),
-            crossing: Vec::new(),
-            crossing_gain: [1.0; L],
-            crossed: false,
-            pending: None,
-            follows_last: false,
-            stale: false,
-        }
-    }
-
     /// The row being rotated in meets row k: whether k lies before p (then its rotation is
     /// logged: [`Self::log`]). At the first k from p on, the row's entries (`positions` and
     /// `values`, from its head on) and the product `gain` of the cosines so far are kept.
@@ -122,21 +105,20 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         let n = self.len();
         let from = from.min(K);
         crate::work::estimated(n as u64);
-        // The arrays of the spread it replaces, or of the last one, for their room: fresh ones
-        // were first touches, page by page, in the step that starts it (city10000: 0.2–0.5 ms
-        // for its two arrays of 10 000 positions; `benches/MEASUREMENTS.md`, forty-first
-        // session).
-        let mut sp = (self.spread.take())
-            .or_else(|| self.spread_room.take())
-            .unwrap_or_else(|| Box::new(Spread::empty()));
-        self.information_into(&mut sp.h, from..K, rows);
-        sp.d_new.clear();
-        sp.d_new.resize(n, [0.0; K]);
-        sp.log.clear();
-        sp.crossing.clear();
-        (sp.from, sp.p, sp.crossing_gain, sp.crossed) = (from, 0, [1.0; L], false);
-        (sp.pending, sp.follows_last, sp.stale) = (None, false, false);
-        self.spread = Some(sp);
+        let g = self.information(from..K, rows);
+        self.spread = Some(Box::new(Spread {
+            from,
+            p: 0,
+            d_new: vec![[0.0; K]; n],
+            h: g,
+            log: Vec::new(),
+            crossing: Vec::new(),
+            crossing_gain: [1.0; L],
+            crossed: false,
+            pending: None,
+            follows_last: false,
+            stale: false,
+        }));
     }
 
     /// Whether a spread of right-hand sides `from..K` is in progress and follows R.
@@ -148,9 +130,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
 
     /// Drop the spread in progress, if any.
     pub fn spread_cancel(&mut self) {
-        if let Some(sp) = self.spread.take() {
-            self.spread_room = Some(sp);
-        }
+        self.spread = None;
     }
 
     /// Solve the next block of positions (about a [`SPREAD_STEPS`]-th of R, more at a step
@@ -196,7 +176,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         for (d, new) in self.d.iter_mut().zip(&sp.d_new) {
             d[from..].copy_from_slice(&new[from..]);
         }
-        self.spread_room = self.spread.take();
+        self.spread = None;
         true
     }
 
