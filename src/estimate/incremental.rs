@@ -185,6 +185,27 @@ pub(crate) const fn lane<const L: usize>(q: usize) -> usize {
     if q < L { q } else { L - 1 }
 }
 
+/// `g += Σ_r a_r β_r` in the right-hand sides `columns`, by position (`pos_of` maps a variable
+/// to its position): the information a forward solve `Rᵀ d = g` starts from, gathered at once
+/// ([`SqrtInfo::reset_rhs_in`]) or a block of rows per step (module `spread`).
+fn gather<const K: usize, const L: usize, const N: usize, C: Lanes<L>>(
+    pos_of: &[u32],
+    g: &mut [[f64; K]],
+    columns: std::ops::Range<usize>,
+    rows: impl IntoIterator<Item = ([(usize, C); N], [f64; K])>,
+) {
+    // (Internal iteration: a chained or flattened source runs as loops over its parts.)
+    rows.into_iter().for_each(|(entries, beta)| {
+        for (v, a) in entries {
+            let p = pos_of[v] as usize;
+            let a = a.lanes();
+            for q in columns.clone() {
+                g[p][q] += a[lane::<L>(q)] * beta[q];
+            }
+        }
+    });
+}
+
 /// A row's coefficient on one variable, per lane: a plain `f64` for a factor of one lane.
 pub(crate) trait Lanes<const L: usize>: Copy {
     /// The coefficient in each lane.
@@ -656,16 +677,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         rows: impl IntoIterator<Item = ([(usize, C); N], [f64; K])>,
     ) -> Vec<[f64; K]> {
         let mut g = vec![[0.0; K]; self.len()];
-        // (Internal iteration: a chained or flattened source runs as loops over its parts.)
-        rows.into_iter().for_each(|(entries, beta)| {
-            for (v, a) in entries {
-                let p = self.pos_of[v] as usize;
-                let a = a.lanes();
-                for q in columns.clone() {
-                    g[p][q] += a[lane::<L>(q)] * beta[q];
-                }
-            }
-        });
+        gather(&self.pos_of, &mut g, columns, rows);
         g
     }
 

@@ -107,11 +107,17 @@ impl<const K: usize, const L: usize> Rows<K, L> {
     /// 20 000 rows, against 109–112 µs this way (`benches/MEASUREMENTS.md`, forty-first
     /// session).
     fn each(&self) -> impl Iterator<Item = ([(usize, [f64; L]); 2], [f64; K])> + Clone + '_ {
-        let slices = self
-            .ends
-            .slices()
-            .zip(self.sqrt_w.slices())
-            .zip(self.y.slices());
+        self.each_in(0..self.ends.len())
+    }
+
+    /// [`Self::each`] for the edges `range` only.
+    fn each_in(
+        &self,
+        range: std::ops::Range<usize>,
+    ) -> impl Iterator<Item = ([(usize, [f64; L]); 2], [f64; K])> + Clone + '_ {
+        let slices = (self.ends.slices_in(range.clone()))
+            .zip(self.sqrt_w.slices_in(range.clone()))
+            .zip(self.y.slices_in(range));
         slices.flat_map(|((ends, sqrt_w), y)| {
             (ends.iter().zip(sqrt_w).zip(y))
                 .map(|((&ends, &s), &y)| (row_entries(ends, s), row_rhs(s, y)))
@@ -730,10 +736,10 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
             return;
         };
         if !self.factor.spreading(from) {
-            let rows = &self.rows;
-            (self.factor).spread_start(from, rows.each());
+            (self.factor).spread_begin(from, self.rows.ends.len());
         }
-        if self.factor.spread_advance() {
+        let rows = &self.rows;
+        if self.factor.spread_advance(|range| rows.each_in(range)) {
             self.stale_rhs = None;
         }
     }

@@ -28,6 +28,7 @@
 //! a path per element and no contiguous chunks to walk; this is a list of shared slices.
 
 use std::collections::TryReserveError;
+use std::ops::Range;
 use std::sync::Arc;
 
 /// Elements per chunk: a chunk's copy on write is `CHUNK` elements (24 KiB of 24-byte rows),
@@ -121,6 +122,20 @@ impl<T: Copy> Chunked<T> {
     /// time ([`Iterator::zip`] of slices, which the compiler makes one loop).
     pub fn slices(&self) -> impl Iterator<Item = &[T]> + Clone + '_ {
         (self.full.iter().map(|c| c.as_slice())).chain(std::iter::once(self.tail.as_slice()))
+    }
+
+    /// The elements `range` as slices in order ([`Self::slices`] cut to the range, chunks
+    /// before it skipped): two arrays of the same length give the same slices' lengths here
+    /// too.
+    pub fn slices_in(&self, range: Range<usize>) -> impl Iterator<Item = &[T]> + Clone + '_ {
+        let Range { start, end } = range;
+        (self.slices().enumerate().skip(start / CHUNK))
+            .take_while(move |&(c, _)| c * CHUNK < end)
+            .map(move |(c, s)| {
+                let at = c * CHUNK;
+                let a = start.saturating_sub(at).min(s.len());
+                &s[a..end.saturating_sub(at).clamp(a, s.len())]
+            })
     }
 
     /// The elements in order, to write (every shared chunk copied first).
@@ -270,5 +285,33 @@ mod tests {
         assert_eq!(d.iter().count(), 2 * CHUNK + 1);
         assert_eq!(d.pop(), Some(2 * CHUNK as u64));
         assert_eq!(Chunked::<u64>::default().pop(), None);
+    }
+
+    /// The slices of a range hold exactly its elements, in order, wherever its ends fall
+    /// (inside a chunk, on a boundary, in the tail, a full tail, empty).
+    #[test]
+    fn the_slices_of_a_range_are_its_elements() {
+        for n in [0, 5, CHUNK, 2 * CHUNK + 3] {
+            let a: Chunked<u64> = (0..n as u64).collect();
+            let cuts = [
+                0,
+                1,
+                CHUNK - 1,
+                CHUNK,
+                CHUNK + 1,
+                2 * CHUNK,
+                n.saturating_sub(1),
+                n,
+            ];
+            for &lo in cuts.iter().filter(|&&c| c <= n) {
+                for &hi in cuts.iter().filter(|&&c| lo <= c && c <= n) {
+                    let got: Vec<u64> = a.slices_in(lo..hi).flatten().copied().collect();
+                    assert!(
+                        got.iter().copied().eq(lo as u64..hi as u64),
+                        "{n}: {lo}..{hi}"
+                    );
+                }
+            }
+        }
     }
 }
