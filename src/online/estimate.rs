@@ -47,9 +47,10 @@
 //! factor per step (a back-substitution spread over about 8 steps, each block reading the
 //! factor of its own step: module `estimate::incremental::back`), then the rows' position
 //! measurements at them a block of rows per step (about 4), the last block rewriting the rows,
-//! then the factor's right-hand sides recomputed from them (one forward solve spread over
-//! about 16 steps, a block of positions each, while rows keep being rotated in:
-//! [`Laplacian::relinearise`], module `estimate::incremental::spread`). Each block is sized by
+//! then the factor's right-hand sides recomputed from them (their information `Σ a β` gathered
+//! a block of rows per step, then one forward solve a block of positions per step, while rows
+//! keep being rotated in: about 19 steps on city10000, [`Laplacian::relinearise`], module
+//! `estimate::incremental::spread`). Each block is sized by
 //! its step's own work on the factor, up to twice its share at a light step (an odometry row)
 //! and a quarter at a loop closure's heavy one (`estimate::incremental::levelled`), so that no
 //! step pays for a whole pass over the factor, and the heaviest steps pay little: each

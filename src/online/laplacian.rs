@@ -710,10 +710,11 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
     }
 
     /// Rewrite the rows' measurements by `relinearise`, and the factor's right-hand sides
-    /// `from..K` with them over the next steps ([`Self::after_step`]: a forward solve spread
-    /// over about 16 of them (`SPREAD_STEPS`), a block of positions each, so that no step pays
-    /// for a whole pass over the factor, nor for both it and the back-substitution that gave
-    /// the headings: module `estimate::incremental::spread`); until it ends the factor answers
+    /// `from..K` with them over the next steps ([`Self::after_step`]: their information
+    /// gathered a block of rows each, then a forward solve a block of positions each, about a
+    /// `SPREAD_STEPS`-th of the factor per step, so that no step pays for a whole pass over
+    /// the rows or the factor, nor for both it and the back-substitution that gave the
+    /// headings: module `estimate::incremental::spread`); until it ends the factor answers
     /// with the rows as they were. The factor's order and values stay.
     pub fn relinearise(&mut self, relinearise: impl FnOnce(&mut Chunked<[f64; K]>), from: usize) {
         relinearise(&mut self.rows.y);

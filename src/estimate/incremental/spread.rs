@@ -20,11 +20,14 @@
 //! `R⁻ᵀ g` for the R of that moment — what one forward solve then would give, up to rounding
 //! — and replaces d's right-hand sides `from..K`. Until then d answers with the rows' old β.
 //!
-//! g itself is gathered over steps first, a block of rows per step ([`SqrtInfo::spread_begin`]:
-//! one pass over every row cost a step 0.1 ms on city10000 and 1.5 ms on a 100 000-pose world).
-//! While it is gathered p = 0, so a row rotated in meanwhile reaches position 0 whole, with no
-//! rotation before: `h += a β'`, its own share of g. The gather walks the rows there were at its
-//! start, those added since come in that way, and when it is done `h = g` and the solve begins.
+//! g itself is gathered over steps first, a block of rows per step ([`SqrtInfo::spread_begin`]):
+//! gathered at once, in the step that began the spread, its pass over every row made that step
+//! the slowest of its neighbours (a median 0.12 ms on city10000, 36 of its 93 such steps among
+//! the slowest 1 %; 1.5 ms on a 100 000-pose world). While g is gathered p = 0, so a row rotated
+//! in meanwhile reaches position 0 whole, with no rotation before: `h += a β'`, its own share of
+//! g. The gather walks the rows there were at its start, those added since come in that way,
+//! and when it is done `h = g` and the solve begins. Gathering takes a median 7 steps of the 19
+//! a spread takes on city10000 (2 of 5 on M3500, 4 of 16 on the 100 000-pose world).
 //!
 //! A row's rotations are replayed on `d'` when it is kept (a tried row taken back never
 //! reaches it); a shift of the last row's β (`shift_last_row`) moves `d'` through the same
@@ -42,9 +45,14 @@ pub(super) const SPREAD_STEPS: usize = 16;
 /// Values of R eliminated per step at least.
 const MIN_BLOCK: usize = 4096;
 
-/// A row gathered into g counts as this many values of R eliminated (its two entries, as a
-/// position of the solve with two entries besides its diagonal).
-const GATHER_COST: usize = 3;
+/// A row gathered into g counts as this many values of R eliminated. Measured with scratch
+/// timers (`so2lin stream FILE --json`, robot order, 2026-12-07): a row took 4.6 ns on
+/// city10000 against 2.6 ns per value of the solve, and 11.5–13.7 ns against 3.0–3.4 ns on a
+/// 100 000-pose world, whose g and order no longer fit in the caches (its rows' writes into g
+/// scatter, the solve reads R in order). In that world's last fifth, a median gathering block
+/// took 0.31 ms against 0.30 ms for a block of its solve (at 3, 0.44 against 0.27 ms); on
+/// city10000 7 against 12 µs.
+const GATHER_COST: usize = 4;
 
 /// The state of a spread forward solve (module docs).
 #[derive(Clone, Debug)]
