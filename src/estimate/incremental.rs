@@ -158,14 +158,27 @@ impl<const L: usize> Row<L> {
 /// The share of its usual block that a pass spread over steps (modules `spread` and `back`,
 /// and the rows of a re-linearisation, module `online::estimate`) takes at a step whose own
 /// work on the factor (its rotations) was `own` entries of R, against that usual block, `base`
-/// entries: up to twice as much at a light step (an odometry row, a few dozen entries), a
-/// quarter at a heavy one (a loop closure's rotations, as many entries as the block or more):
-/// `max(1/4, 2 − own/base)`. The slowest steps are loop closures', and a block added to them
-/// adds to the p99. Counted work, so the same steps in every run, and the same with one lane
-/// or two (entries, not values).
+/// entries: up to [`LIGHT_SHARE`] times as much at a light step (an odometry row, a few dozen
+/// entries), a quarter at a heavy one (a loop closure's rotations, as many entries as the
+/// block or more): `max(1/4, LIGHT_SHARE − own/base)`. The slowest steps are loop closures',
+/// and a block added to them adds to the p99. Counted work, so the same steps in every run,
+/// and the same with one lane or two (entries, not values).
 pub(crate) fn levelled(own: u64, base: usize) -> f64 {
-    (2.0 - own as f64 / base.max(1) as f64).max(0.25)
+    (LIGHT_SHARE - own as f64 / base.max(1) as f64).max(0.25)
 }
+
+/// The share of its usual block a pass takes at the lightest steps ([`levelled`]). A pass
+/// reads R at about 2.5 ns a value (its values gathered by position), where a rotation
+/// takes about 1 ns, so a light step's double block (2, until 2026-12-07) made it as slow as
+/// the slowest 1 %: on city10000 28 of the 206 slowest steps were odometry steps carrying a
+/// block of the headings' back-substitution (44–66 k values, 0.13–0.25 ms). Measured (`so2lin
+/// stream FILE --json`, robot order, the newest pose read after every step, alternating runs,
+/// 2026-12-07; 1.25 against 2): city10000 p99 median 123.0 against 129.6 µs (seven runs
+/// each), M3500 98.5 against 103.3 µs (eight); the fast pose lands its re-linearisation a few
+/// steps later, its mean distance to the exact one 0.047 against 0.046 m on M3500 and 0.103
+/// against 0.101 m on city10000 (sampled every 25 steps). At 1 the p99 gained no more (123.6
+/// and 100.0 µs) and M3500's fast pose was 0.054 m away.
+const LIGHT_SHARE: f64 = 1.25;
 
 /// Entries of R a block of a pass spread over steps reads at least, however heavy its step
 /// ([`levelled`]).

@@ -44,14 +44,15 @@
 //! that starts a renewal pays no back-substitution), and from the step at which a bound on how
 //! far the headings have moved since the rows were linearised passes [`HEADING_LAG`], over
 //! the next steps ([`Estimate::relinearise_over_steps`]): the headings solved a block of the
-//! factor per step (a back-substitution spread over about 8 steps, each block reading the
-//! factor of its own step: module `estimate::incremental::back`), then the rows' position
-//! measurements at them a block of rows per step (about 4), the last block rewriting the rows,
+//! factor per step (a back-substitution spread over steps, each block reading the factor of
+//! its own step: module `estimate::incremental::back`), then the rows' position measurements
+//! at them a block of rows per step, the last block rewriting the rows,
 //! then the factor's right-hand sides recomputed from them (their information `Σ a β` gathered
 //! a block of rows per step, then one forward solve a block of positions per step, while rows
-//! keep being rotated in: about 19 steps on city10000, [`Laplacian::relinearise`], module
-//! `estimate::incremental::spread`). Each block is sized by
-//! its step's own work on the factor, up to twice its share at a light step (an odometry row)
+//! keep being rotated in: [`Laplacian::relinearise`], module `estimate::incremental::spread`);
+//! on city10000 the three take a median 3.5, 5 and 24.5 steps, on M3500 0 (the headings in the
+//! step that starts it), 1 and 7 (scratch counters, 2026-12-07). Each block is sized by
+//! its step's own work on the factor, up to 1.25 times its share at a light step (an odometry row)
 //! and a quarter at a loop closure's heavy one (`estimate::incremental::levelled`), so that no
 //! step pays for a whole pass over the factor, and the heaviest steps pay little: each
 //! heading row added, or measurement moved, changes the headings by a potential driven between
