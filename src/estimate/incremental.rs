@@ -302,6 +302,8 @@ pub(crate) struct SqrtInfo<const K: usize, const L: usize = 1> {
     recording: bool,
     /// A forward solve of new right-hand sides spread over steps (module `spread`).
     spread: Option<Box<Spread<K, L>>>,
+    /// The last spread's state, ended: its arrays for the next (module `spread`).
+    spread_spare: Option<Box<Spread<K, L>>>,
     /// A back-substitution spread over steps (module `back`).
     back: Option<Box<back::Back>>,
 }
@@ -361,6 +363,7 @@ impl<const K: usize, const L: usize> Default for SqrtInfo<K, L> {
             undo: None,
             recording: false,
             spread: None,
+            spread_spare: None,
             back: None,
         }
     }

@@ -159,6 +159,9 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
             emptied(&mut mine.val, &mut theirs.val);
         }
         emptied(&mut self.aligned, &mut old.aligned);
+        if self.spread.is_none() && self.spread_spare.is_none() {
+            self.spread_spare = old.spread_spare.take().or_else(|| old.spread.take());
+        }
         emptied(&mut self.path, &mut old.path);
         let room = |u: &Option<Box<Undo<K, L>>>| u.as_ref().map_or(0, |u| u.values.capacity());
         let idle = |u: &Option<Box<Undo<K, L>>>| u.as_ref().is_none_or(|u| !u.active);
