@@ -729,6 +729,26 @@ impl<const K: usize, const L: usize> Laplacian<K, L> {
         }
     }
 
+    /// The measurements of rows `range`, to rewrite ahead of a [`Self::relinearise`] that
+    /// takes them as they are (a re-linearisation a block of rows per step, module
+    /// `online::estimate`). Neither the factor nor a renewal's builder is told until that
+    /// call: meanwhile the rows hold measurements of two linearisations, which only a
+    /// renewal's start (whose builder rewrites every row) and [`Self::all_for`] (which
+    /// rewrites every row, then puts them back) read — and a spread of right-hand sides, so
+    /// none may be in progress ([`Self::rhs_lagging`]).
+    pub fn measurements_mut(
+        &mut self,
+        range: std::ops::Range<usize>,
+    ) -> impl Iterator<Item = &mut [f64; K]> + '_ {
+        self.rows.y.slices_in_mut(range).flatten()
+    }
+
+    /// Whether the right-hand sides lag the rows' measurements (a [`Self::relinearise`]
+    /// whose spread forward solve has not ended).
+    pub fn rhs_lagging(&self) -> bool {
+        self.stale_rhs.is_some()
+    }
+
     /// Advance the spread forward solve of the right-hand sides a [`Self::relinearise`] left
     /// lagging by one block (starting it, or starting it again when something it does not
     /// follow changed the factor); they are current when it ends.

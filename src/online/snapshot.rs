@@ -138,6 +138,25 @@ impl<T: Copy> Chunked<T> {
             })
     }
 
+    /// [`Self::slices_in`] to write: only the chunks the range touches are copied first when
+    /// shared.
+    pub fn slices_in_mut(&mut self, range: Range<usize>) -> impl Iterator<Item = &mut [T]> + '_ {
+        let Range { start, end } = range;
+        let (first, tail_at) = (start / CHUNK, self.full.len());
+        let touched = move |c: usize| start < end && c >= first && c * CHUNK < end;
+        let full = (self.full.iter_mut().enumerate().skip(first))
+            .take_while(move |&(c, _)| touched(c))
+            .map(|(c, chunk)| (c, Arc::make_mut(chunk).as_mut_slice()));
+        let tail = std::iter::once((tail_at, self.tail.as_mut_slice()));
+        let tail = tail.filter(move |&(c, _)| touched(c));
+        full.chain(tail).map(move |(c, s)| {
+            let at = c * CHUNK;
+            let len = s.len();
+            let a = start.saturating_sub(at).min(len);
+            &mut s[a..end.saturating_sub(at).clamp(a, len)]
+        })
+    }
+
     /// The elements in order, to write (every shared chunk copied first).
     pub fn iter_mut(&mut self) -> impl Iterator<Item = &mut T> + '_ {
         (self
@@ -308,6 +327,26 @@ mod tests {
                     let got: Vec<u64> = a.slices_in(lo..hi).flatten().copied().collect();
                     assert!(
                         got.iter().copied().eq(lo as u64..hi as u64),
+                        "{n}: {lo}..{hi}"
+                    );
+                    // Written through the mutable slices: that range only, in a copy whose
+                    // chunks outside it stay shared with the original.
+                    let mut b = a.clone();
+                    for v in b.slices_in_mut(lo..hi).flatten() {
+                        *v += 1_000_000;
+                    }
+                    let moved =
+                        |i: usize| i as u64 + if (lo..hi).contains(&i) { 1_000_000 } else { 0 };
+                    assert!(
+                        b.iter().copied().eq((0..n).map(moved)),
+                        "{n}: {lo}..{hi} written"
+                    );
+                    let shared = (a.full.iter().zip(&b.full).enumerate())
+                        .filter(|(_, (x, y))| Arc::ptr_eq(x, y))
+                        .map(|(c, _)| c);
+                    let outside = |c: usize| lo == hi || c * CHUNK >= hi || (c + 1) * CHUNK <= lo;
+                    assert!(
+                        shared.eq((0..a.full.len()).filter(|&c| outside(c))),
                         "{n}: {lo}..{hi}"
                     );
                 }
