@@ -50,8 +50,8 @@
 //! then the factor's right-hand sides recomputed from them (their information `Σ a β` gathered
 //! a block of rows per step, then one forward solve a block of positions per step, while rows
 //! keep being rotated in: [`Laplacian::relinearise`], module `estimate::incremental::spread`);
-//! on city10000 the three take a median 3.5, 5 and 24.5 steps, on M3500 0 (the headings in the
-//! step that starts it), 1 and 7 (scratch counters, 2026-12-07). Each block is sized by
+//! on city10000 the three take a median 3.5, 7 and 24 steps, on M3500 0 (the headings in the
+//! step that starts it), 3 and 7 (scratch counters, 2026-12-07). Each block is sized by
 //! its step's own work on the factor, up to 1.25 times its share at a light step (an odometry row)
 //! and a quarter at a loop closure's heavy one (`estimate::incremental::levelled`), so that no
 //! step pays for a whole pass over the factor, and the heaviest steps pay little: each
@@ -215,8 +215,10 @@ const ROW_STEPS: usize = 4;
 /// in one or two steps of about 60 µs (15–30 ns a row), 5 of its 54 slowest; at 1 024
 /// (alternating runs, `so2lin stream M3500.g2o --json`, robot order, the newest pose read after
 /// every step, 2026-12-07) its p99 median was 98.8 against 103.9 µs, lower in seven of eight
-/// rounds, the fast pose 0.0476 against 0.0473 m from the exact one on average. Larger files
-/// write a quarter of their rows a step ([`ROW_STEPS`]), above this.
+/// rounds, the fast pose 0.0476 against 0.0473 m from the exact one on average; city10000,
+/// whose first 16 000 rows it also bounds, within the noise (eleven rounds: median 129.2
+/// against 126.0 µs, five lower). Larger files write a quarter of their rows a step
+/// ([`ROW_STEPS`]), above this.
 const MIN_ROW_BLOCK: usize = 1024;
 
 /// Live work (entries of the factor visited by the steps' rotations and solves, counted)

@@ -69,8 +69,8 @@ pub struct StreamArgs<'a> {
 /// collected), `renewal_waited` (the step waited for that renewal's builder) and
 /// `relinearised` (every position row rewritten at the headings: the last step of a
 /// re-linearisation, whose headings were solved a block of the factor per step over the steps
-/// before (about 4 on city10000) and its rows' measurements over about 5; the factor's
-/// right-hand sides follow over about the next 25 steps on city10000, their information
+/// before (about 4 on city10000) and its rows' measurements over about 7; the factor's
+/// right-hand sides follow over about the next 24 steps on city10000, their information
 /// gathered a block of rows a step, then a forward solve a block of positions a step;
 /// the blocks are counted in their steps' work), and the robot thread's CPU time in the step in
 /// ns ([`thread_cpu_ns`]; empty where the clock is not read): `ns` less `cpu_ns` is the time the
