@@ -174,7 +174,8 @@ pub(crate) fn levelled(own: u64, base: usize) -> f64 {
 /// block of the headings' back-substitution (44–66 k values, 0.13–0.25 ms). Measured (`so2lin
 /// stream FILE --json`, robot order, the newest pose read after every step, alternating runs,
 /// 2026-12-07; 1.25 against 2): city10000 p99 median 123.0 against 129.6 µs (seven runs
-/// each), M3500 98.5 against 103.3 µs (eight); the fast pose lands its re-linearisation a few
+/// each; worst step 3.53–3.87 against 3.46–5.36 ms), M3500 98.5 against 103.3 µs (eight;
+/// worst step 1.06–2.84 against 1.53–3.98 ms); the fast pose lands its re-linearisation a few
 /// steps later, its mean distance to the exact one 0.047 against 0.046 m on M3500 and 0.103
 /// against 0.101 m on city10000 (sampled every 25 steps). At 1 the p99 gained no more (123.6
 /// and 100.0 µs) and M3500's fast pose was 0.054 m away.

@@ -177,8 +177,10 @@ pub(crate) struct Estimate {
     trig: Trig,
     /// A re-linearisation of the position rows in progress ([`Self::after_step`]).
     relin: Option<Relin>,
-    /// The block of rows' new position measurements the one in progress writes in a step
-    /// (kept for its room).
+    /// The block of rows' new position measurements the one in progress writes in a step,
+    /// computed here first and then copied into the rows (kept for its room): computing them
+    /// straight into the rows' chunks made those steps slower (city10000, two traced runs
+    /// each: a median 92–95 µs against 62–68 µs two steps before the last block).
     relin_rows: Vec<[f64; 2]>,
     /// Each position row's edge's older end and measurement, copied from the graph as a
     /// renewal's job first needs them ([`tails_snapshot`]): each edge once, and a renewal's
@@ -215,9 +217,9 @@ const ROW_STEPS: usize = 4;
 /// in one or two steps of about 60 µs (15–30 ns a row), 5 of its 54 slowest; at 1 024
 /// (alternating runs, `so2lin stream M3500.g2o --json`, robot order, the newest pose read after
 /// every step, 2026-12-07) its p99 median was 98.8 against 103.9 µs, lower in seven of eight
-/// rounds, the fast pose 0.0476 against 0.0473 m from the exact one on average; city10000,
+/// rounds (worst step 1.35–3.41 against 1.38–3.62 ms), the fast pose 0.0476 against 0.0473 m from the exact one on average; city10000,
 /// whose first 16 000 rows it also bounds, within the noise (eleven rounds: median 129.2
-/// against 126.0 µs, five lower). Larger files write a quarter of their rows a step
+/// against 126.0 µs, five lower; worst step 3.26–5.96 against 3.52–4.95 ms). Larger files write a quarter of their rows a step
 /// ([`ROW_STEPS`]), above this.
 const MIN_ROW_BLOCK: usize = 1024;
 
@@ -928,7 +930,6 @@ impl Estimate {
                         if let Some(theta) =
                             with_factor!(&mut self.factors, both => both.back_take())
                         {
-                            self.relin_rows.clear();
                             self.relin = Some(Relin::Rows {
                                 theta,
                                 next: 0,

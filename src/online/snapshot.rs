@@ -128,42 +128,32 @@ impl<T: Copy> Chunked<T> {
     /// before it skipped): two arrays of the same length give the same slices' lengths here
     /// too.
     pub fn slices_in(&self, range: Range<usize>) -> impl Iterator<Item = &[T]> + Clone + '_ {
-        let Range { start, end } = range;
-        (self.slices().enumerate().skip(start / CHUNK))
-            .take_while(move |&(c, _)| c * CHUNK < end)
-            .map(move |(c, s)| {
-                let at = c * CHUNK;
-                let a = start.saturating_sub(at).min(s.len());
-                &s[a..end.saturating_sub(at).clamp(a, s.len())]
-            })
+        let range = (range.start, range.end);
+        (self.slices().enumerate().skip(range.0 / CHUNK))
+            .take_while(move |&(c, _)| touches(range, c))
+            .map(move |(c, s)| &s[cut(range, c, s.len())])
     }
 
     /// [`Self::slices_in`] to write: only the chunks the range touches are copied first when
     /// shared.
     pub fn slices_in_mut(&mut self, range: Range<usize>) -> impl Iterator<Item = &mut [T]> + '_ {
-        let Range { start, end } = range;
-        let (first, tail_at) = (start / CHUNK, self.full.len());
-        let touched = move |c: usize| start < end && c >= first && c * CHUNK < end;
+        let range = (range.start, range.end);
+        let (first, tail_at) = (range.0 / CHUNK, self.full.len());
         let full = (self.full.iter_mut().enumerate().skip(first))
-            .take_while(move |&(c, _)| touched(c))
+            .take_while(move |&(c, _)| touches(range, c))
             .map(|(c, chunk)| (c, Arc::make_mut(chunk).as_mut_slice()));
         let tail = std::iter::once((tail_at, self.tail.as_mut_slice()));
-        let tail = tail.filter(move |&(c, _)| touched(c));
+        let tail = tail.filter(move |&(c, _)| c >= first && touches(range, c));
         full.chain(tail).map(move |(c, s)| {
-            let at = c * CHUNK;
             let len = s.len();
-            let a = start.saturating_sub(at).min(len);
-            &mut s[a..end.saturating_sub(at).clamp(a, len)]
+            &mut s[cut(range, c, len)]
         })
     }
 
     /// The elements in order, to write (every shared chunk copied first).
     pub fn iter_mut(&mut self) -> impl Iterator<Item = &mut T> + '_ {
-        (self
-            .full
-            .iter_mut()
-            .flat_map(|c| Arc::make_mut(c).iter_mut()))
-        .chain(self.tail.iter_mut())
+        let len = self.len();
+        self.slices_in_mut(0..len).flatten()
     }
 
     /// Room for `additional` more elements: the tail's and spare chunks' allocated ahead, so
@@ -196,6 +186,20 @@ impl<T: Copy> Chunked<T> {
         out.extend(self.spare.iter().rev().map(|c| c.as_ptr()));
         out
     }
+}
+
+/// Whether chunk `c` holds any element of the range `(start, end)` (chunks before the
+/// range's are skipped by the callers, so this says whether the range still reaches it).
+fn touches((start, end): (usize, usize), c: usize) -> bool {
+    start < end && c * CHUNK < end
+}
+
+/// The part of the range `(start, end)` in chunk `c` (of `len` elements), as indices into the
+/// chunk.
+fn cut((start, end): (usize, usize), c: usize, len: usize) -> Range<usize> {
+    let at = c * CHUNK;
+    let a = start.saturating_sub(at).min(len);
+    a..end.saturating_sub(at).clamp(a, len)
 }
 
 impl<T: Copy> std::ops::Index<usize> for Chunked<T> {

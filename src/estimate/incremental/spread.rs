@@ -83,9 +83,6 @@ pub(super) struct Spread<const K: usize, const L: usize> {
     follows_last: bool,
     /// Changed in a way it does not follow: to start again.
     stale: bool,
-    /// h is all zeros (the solve zeroes each position it eliminates, so a spread that ended
-    /// leaves it so): the next spread takes it as it is.
-    clean: bool,
 }
 
 impl<const K: usize, const L: usize> Spread<K, L> {
@@ -140,21 +137,20 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         // The arrays of the last spread (one in progress, or ended) serve again: allocated
         // afresh, zeroing them cost the step that began a spread a median 26 µs on city10000
         // and up to 0.47 ms (scratch timers, 2026-12-07). d' needs no zeros (each position is
-        // written before it is read), h is zeroed as the solve goes.
+        // written before it is read); h is zero before that spread's p (its solve zeroes each
+        // position it eliminates, and no row reaches a position before p), so only h[p..]
+        // is zeroed here: nothing when that spread ended.
         let mut sp = match self.spread.take().or_else(|| self.spread_spare.take()) {
             Some(mut sp) => {
-                if !sp.clean {
-                    crate::work::estimated(sp.h.len() as u64);
-                    sp.h.fill([0.0; K]);
-                }
+                let from_p = sp.p.min(sp.h.len());
+                crate::work::estimated((sp.h.len() - from_p) as u64);
+                sp.h[from_p..].fill([0.0; K]);
                 for v in [&mut sp.h, &mut sp.d_new] {
                     v.truncate(n);
                     v.resize(n, [0.0; K]);
                     // (Refused, it grows as it would have.)
                     let _ = v.try_reserve(room - n);
                 }
-                sp.log.clear();
-                sp.crossing.clear();
                 sp
             }
             None => {
@@ -173,20 +169,21 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
                     pending: None,
                     follows_last: false,
                     stale: false,
-                    clean: true,
                 })
             }
         };
+        // (A fresh one holds these already; one taken again is reset.)
         sp.from = from;
         sp.p = 0;
         sp.gathered = 0;
         sp.rows = rows;
+        sp.log.clear();
+        sp.crossing.clear();
         sp.crossing_gain = [1.0; L];
         sp.crossed = false;
         sp.pending = None;
         sp.follows_last = false;
         sp.stale = false;
-        sp.clean = false;
         self.spread = Some(sp);
     }
 
@@ -233,7 +230,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         }
         while sp.gathered == sp.rows && sp.p < n && done < budget {
             let k = sp.p;
-            // (Zeroed for the next spread: no later row reaches a position before p.)
+            // (Zeroed for the next spread, which takes h[..p] as zeros: module docs.)
             let mut dk = std::mem::replace(&mut sp.h[k], [0.0; K]);
             let diag = self.diag[k];
             for (q, x) in dk.iter_mut().enumerate().skip(from) {
@@ -262,7 +259,6 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         for (d, new) in self.d.iter_mut().zip(&sp.d_new) {
             d[from..].copy_from_slice(&new[from..]);
         }
-        sp.clean = true;
         self.spread_cancel();
         true
     }
