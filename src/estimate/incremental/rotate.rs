@@ -16,17 +16,28 @@
 //! Row k is rotated in place when the row's remaining positions lie in row k's pattern or
 //! beyond its last position ([`align`] places them; fill beyond the last is appended),
 //! otherwise row k is rebuilt by a merge. A tentative row ([`SqrtInfo::try_row`]) records
-//! each row it changes, to be put back bit for bit ([`SqrtInfo::undo_row`]).
+//! each rotation it makes — row k's old length (or, after a merge, its old positions), its
+//! diagonal and right-hand side, the rotation's `(c, s)` and the row's pivot `w_k` — and
+//! [`SqrtInfo::undo_row`] turns the rotations back, last first: with `w'` the row after the
+//! rotation at k (zero after the last one),
+//!
+//! ```text
+//! R_k ← c R_k − s w',     w ← s R_k + c w'     (on row k's pattern; w_k from the record),
+//! ```
+//!
+//! row k's pattern cut back to its old one (the fill's entries are zero up to rounding), its
+//! diagonal and right-hand side put back as recorded. The rotations are orthogonal, so the
+//! rows come back to within a few units of rounding of their old values (not bit for bit),
+//! and the forward pass copies no row's values: that copy was a sixth of a loop closure's
+//! rotations, and most tried rows are kept.
 
 use super::{Indefinite, Lanes, Leftover, NONE, Row, SqrtInfo, has_zero, is_zero, lane};
 
-/// The state a tentative row ([`SqrtInfo::try_row`]) overwrote: per row of R it rotated, a
-/// [`Rotated`] record; and the factor-wide counts and gains.
+/// What a tentative row ([`SqrtInfo::try_row`]) needs to be turned back: per row of R it
+/// rotated, a [`Rotated`] record; and the factor-wide counts and gains.
 #[derive(Clone, Debug)]
 pub(super) struct Undo<const K: usize, const L: usize> {
     rows: Vec<Rotated<K, L>>,
-    /// The rotated rows' values, one range per record.
-    values: Vec<[f64; L]>,
     /// The positions of the rows rebuilt by a merge, one range per such record (a row rotated
     /// in place only gained positions at its end: its old length restores its pattern).
     positions: Vec<u32>,
@@ -42,7 +53,6 @@ impl<const K: usize, const L: usize> Default for Undo<K, L> {
     fn default() -> Self {
         Self {
             rows: Vec::new(),
-            values: Vec::new(),
             positions: Vec::new(),
             nnz: 0,
             work: 0,
@@ -53,17 +63,21 @@ impl<const K: usize, const L: usize> Default for Undo<K, L> {
     }
 }
 
-/// A row of R as a tentative row found it: its position, where its values (and positions, if
-/// a merge rebuilt it) start in the [`Undo`] record, its length, diagonal and right-hand side.
+/// One rotation of a tentative row: the row of R it turned (position k) as the row found it —
+/// its length, where its positions start in the [`Undo`] record if a merge rebuilt it, its
+/// diagonal and right-hand side — and the rotation: `(c, s)` per lane and the row's pivot
+/// value `w_k`.
 #[derive(Clone, Copy, Debug)]
 struct Rotated<const K: usize, const L: usize> {
     k: u32,
-    values: u32,
-    /// [`NONE`] when the row was rotated in place.
+    /// [`NONE`] when the row was rotated in place (its old pattern is its first `len`).
     positions: u32,
     len: u32,
     diag: [f64; L],
     d: [f64; K],
+    c: [f64; L],
+    s: [f64; L],
+    pivot: [f64; L],
 }
 
 impl<const K: usize, const L: usize> SqrtInfo<K, L> {
@@ -120,7 +134,6 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     ) -> Leftover<K, L> {
         let mut undo = self.undo.take().unwrap_or_default();
         undo.rows.clear();
-        undo.values.clear();
         undo.positions.clear();
         undo.nnz = self.nnz;
         undo.work = self.work;
@@ -138,10 +151,10 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     /// values, the spare row, the tried row's undo record), emptied, their capacity kept, when
     /// this factor replaces `old` (a renewal swapped in). A fresh factor's buffers start empty
     /// and grow by doubling in the steps after the swap, each growth a copy into memory the
-    /// allocator must first fault in: the undo record of a heavy loop closure holds every row
-    /// it rotated (about a megabyte on city10000), and on city10000 that growth took 2 % of the
-    /// robot thread's samples (`perf`; `benches/MEASUREMENTS.md`, thirty-first session; the
-    /// steps' time moved within the noise).
+    /// allocator must first fault in: the undo record of a heavy loop closure holds a record
+    /// per rotation (a thousand and more on city10000); when it held every rotated row's values,
+    /// about a megabyte, that growth took 2 % of city10000's robot thread's samples (`perf`;
+    /// `benches/MEASUREMENTS.md`, thirty-first session).
     /// A pending tried row's record is not taken (its factor must still undo it).
     pub(crate) fn take_scratch_of(&mut self, old: &mut Self) {
         fn emptied<T>(mine: &mut Vec<T>, theirs: &mut Vec<T>) {
@@ -163,25 +176,25 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
             self.spread_spare = old.spread_spare.take().or_else(|| old.spread.take());
         }
         emptied(&mut self.path, &mut old.path);
-        let room = |u: &Option<Box<Undo<K, L>>>| u.as_ref().map_or(0, |u| u.values.capacity());
+        let room = |u: &Option<Box<Undo<K, L>>>| u.as_ref().map_or(0, |u| u.rows.capacity());
         let idle = |u: &Option<Box<Undo<K, L>>>| u.as_ref().is_none_or(|u| !u.active);
         if idle(&self.undo) && idle(&old.undo) && room(&old.undo) > room(&self.undo) {
             std::mem::swap(&mut self.undo, &mut old.undo);
             if let Some(u) = &mut self.undo {
                 u.rows.clear();
-                u.values.clear();
                 u.positions.clear();
                 u.gains.clear();
             }
         }
     }
 
-    /// The scratch buffers' room, in values (tests of [`Self::take_scratch_of`]'s callers).
+    /// The scratch buffers' room, in values and rotation records (tests of
+    /// [`Self::take_scratch_of`]'s callers).
     #[cfg(test)]
     pub(crate) fn scratch_room(&self) -> usize {
         self.w.val.capacity()
             + self.w_next.val.capacity()
-            + self.undo.as_ref().map_or(0, |u| u.values.capacity())
+            + self.undo.as_ref().map_or(0, |u| u.rows.capacity())
     }
 
     /// Keep the row of the last [`Self::try_row`].
@@ -189,43 +202,69 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         self.spread_keep();
         if let Some(u) = &mut self.undo {
             u.rows.clear();
-            u.values.clear();
             u.positions.clear();
             u.active = false;
         }
     }
 
-    /// Take back the row of the last [`Self::try_row`]: R, d, the gains and the work count
-    /// exactly as before it (bit for bit; the rows it filled get their old entries back).
-    /// Nothing when no tried row is pending (kept, or already taken back).
+    /// Take back the row of the last [`Self::try_row`]: its rotations turned back, last first
+    /// (module doc). Every row it touched gets its old pattern, diagonal and right-hand side
+    /// exactly, and its old values to within rounding; the gains, counts and work are as
+    /// before it. Nothing when no tried row is pending (kept, or already taken back).
     pub fn undo_row(&mut self) {
         let Some(mut u) = self.undo.take_if(|u| u.active) else {
             return;
         };
         self.spread_undo();
+        // The row as it was after the rotation being turned back: nothing after the last one.
+        let mut after = std::mem::take(&mut self.w);
+        let mut before = std::mem::take(&mut self.w_next);
+        after.clear();
         for r in u.rows.iter().rev() {
-            let (k, len) = (r.k as usize, r.len as usize);
+            let k = r.k as usize;
             let row = &mut self.rows[k];
+            before.clear();
+            before.push(r.k, r.pivot);
+            // `after` lies on row k's pattern but for entries that are rounding (a position the
+            // row never had, turned back), which are dropped.
+            let mut t = 0;
+            for (p, v) in row.pos.iter().zip(row.val.iter_mut()) {
+                while t < after.len() && after.pos[t] < *p {
+                    t += 1;
+                }
+                let x = if t < after.len() && after.pos[t] == *p {
+                    after.val[t]
+                } else {
+                    [0.0; L]
+                };
+                let mut back = [0.0; L];
+                for l in 0..L {
+                    (v[l], back[l]) = unturn((r.c[l], r.s[l]), v[l], x[l]);
+                }
+                before.push(*p, back);
+            }
+            let len = r.len as usize;
             if r.positions == NONE {
                 row.pos.truncate(len);
+                row.val.truncate(len);
             } else {
-                row.pos.clear();
                 let start = r.positions as usize;
-                row.pos.extend_from_slice(&u.positions[start..start + len]);
+                keep_positions(row, &u.positions[start..start + len]);
             }
-            row.val.clear();
-            let start = r.values as usize;
-            row.val.extend_from_slice(&u.values[start..start + len]);
             self.diag[k] = r.diag;
             self.d[k] = r.d;
+            std::mem::swap(&mut after, &mut before);
         }
+        after.clear();
+        before.clear();
+        self.w = after;
+        self.w_next = before;
         self.nnz = u.nnz;
         // Work counts what stays: a renewal is due after the same work with or without it.
         self.work = u.work;
         std::mem::swap(&mut self.gains, &mut u.gains);
         self.gains_valid = u.gains_valid;
         u.rows.clear();
-        u.values.clear();
         u.positions.clear();
         u.active = false;
         self.undo = Some(u);
@@ -299,16 +338,16 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
             if self.recording
                 && let Some(u) = &mut self.undo
             {
-                let row = &self.rows[k];
                 u.rows.push(Rotated {
                     k: k as u32,
-                    values: u.values.len() as u32,
                     positions: NONE,
-                    len: row.len() as u32,
+                    len: self.rows[k].len() as u32,
                     diag: self.diag[k],
                     d: self.d[k],
+                    c: [1.0; L],
+                    s: [0.0; L],
+                    pivot: wk,
                 });
-                u.values.extend_from_slice(&row.val);
             }
             let (mut c, mut s) = ([1.0; L], [0.0; L]);
             let mut indefinite = false;
@@ -350,6 +389,12 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
             }
             if indefinite {
                 break Err(Indefinite { position: k });
+            }
+            if self.recording
+                && let Some(u) = &mut self.undo
+                && let Some(r) = u.rows.last_mut()
+            {
+                (r.c, r.s) = (c, s);
             }
             if log_spread && let Some(sp) = self.spread.as_deref_mut() {
                 sp.log(k, c, s);
@@ -566,6 +611,32 @@ fn rotate_in_place<const L: usize>(
     Some((rest_pos.len() - inside, zero))
 }
 
+/// Keep the entries of `row` at `positions` (a subset of its own, ascending), in order.
+fn keep_positions<const L: usize>(row: &mut Row<L>, positions: &[u32]) {
+    let mut o = 0;
+    for t in 0..row.len() {
+        if o < positions.len() && row.pos[t] == positions[o] {
+            row.val[o] = row.val[t];
+            o += 1;
+        }
+    }
+    debug_assert_eq!(
+        o,
+        positions.len(),
+        "a merge's old pattern lies in its new one"
+    );
+    row.pos.clear();
+    row.pos.extend_from_slice(positions);
+    row.val.truncate(o);
+}
+
+/// [`turn`] of an update turned back: (row k's entry, the row's entry after the rotation) →
+/// (row k's entry, the row's entry) before it.
+#[inline(always)]
+fn unturn((c, s): (f64, f64), rk: f64, w: f64) -> (f64, f64) {
+    (c * rk - s * w, s * rk + c * w)
+}
+
 /// One Givens rotation (a hyperbolic one when `downdate`) of a pair: (row k's entry, the row's
 /// entry) → their rotated values.
 #[inline(always)]
@@ -581,7 +652,7 @@ fn turn(downdate: bool, (c, s): (f64, f64), rkj: f64, wj: f64) -> (f64, f64) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::estimate::incremental::tests::{chain_with_closures, lcg};
+    use crate::estimate::incremental::tests::{assert_taken_back, chain_with_closures, lcg};
 
     /// [`align`] against a plain lookup, on random rows and random rests: rests on the row's
     /// whole pattern, on it less its first position (the fast path; a row of one position
@@ -663,7 +734,7 @@ mod tests {
     #[test]
     fn a_replacing_factor_takes_the_old_ones_scratch() {
         let mut old = grown(60, 3);
-        let undo_room = old.undo.as_ref().map_or(0, |u| u.values.capacity());
+        let undo_room = old.undo.as_ref().map_or(0, |u| u.rows.capacity());
         let w_room = old.w.val.capacity().max(old.w_next.val.capacity());
         assert!(
             undo_room > 60 && w_room > 2,
@@ -673,8 +744,8 @@ mod tests {
         let (mut with, mut without) = (fresh.clone(), fresh);
         with.take_scratch_of(&mut old);
         let u = with.undo.as_ref().expect("the undo record taken");
-        assert!(u.values.capacity() >= undo_room && !u.active);
-        assert!(u.rows.is_empty() && u.values.is_empty() && u.positions.is_empty());
+        assert!(u.rows.capacity() >= undo_room && !u.active);
+        assert!(u.rows.is_empty() && u.positions.is_empty());
         assert!(with.w.val.capacity().max(with.w_next.val.capacity()) >= w_room);
         assert!(with.w.len() == 0 && with.w_next.len() == 0 && with.aligned.is_empty());
         let mut s = 9u64;
@@ -708,9 +779,6 @@ mod tests {
         assert!(pending.undo.as_ref().is_some_and(|u| u.active));
         assert!(other.undo.as_ref().is_none_or(|u| !u.active));
         pending.undo_row();
-        assert_eq!(
-            (&pending.rows, &pending.diag, &pending.d),
-            (&before.rows, &before.diag, &before.d)
-        );
+        assert_taken_back(&pending, &before);
     }
 }
