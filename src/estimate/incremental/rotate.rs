@@ -15,7 +15,10 @@
 //!
 //! Row k is rotated in place when the row's remaining positions lie in row k's pattern or
 //! beyond its last position ([`align`] places them; fill beyond the last is appended),
-//! otherwise row k is rebuilt by a merge. A tentative row ([`SqrtInfo::try_row`]) records
+//! otherwise row k is rebuilt by a merge. The row goes on with row k's pattern; where a
+//! rotation cancelled exactly it carries a zero, which later rotations skip as a pivot and
+//! never store as fill (until 2026-12-07 a second pass over each rotated row looked for such
+//! zeros to drop them: a sixteenth of city10000's robot thread, `perf`). A tentative row ([`SqrtInfo::try_row`]) records
 //! each rotation it makes — row k's old length (or, after a merge, its old positions), its
 //! diagonal and right-hand side, the rotation's `(c, s)` and the row's pivot `w_k` — and
 //! [`SqrtInfo::undo_row`] turns the rotations back, last first: with `w'` the row after the
@@ -31,7 +34,7 @@
 //! and the forward pass copies no row's values: that copy was a sixth of a loop closure's
 //! rotations, and most tried rows are kept.
 
-use super::{Indefinite, Lanes, Leftover, NONE, Row, SqrtInfo, has_zero, is_zero, lane};
+use super::{Indefinite, Lanes, Leftover, NONE, Row, SqrtInfo, is_zero, lane};
 
 /// What a tentative row ([`SqrtInfo::try_row`]) needs to be turned back: per row of R it
 /// rotated, a [`Rotated`] record; and the factor-wide counts and gains.
@@ -424,17 +427,9 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
                     &mut self.aligned,
                 )
             };
-            if let Some((fill, zeros)) = in_place {
+            if let Some(fill) = in_place {
                 self.nnz += fill;
-                if zeros {
-                    // The row goes on with row k's pattern less its zeros, written out.
-                    next.pos.clear();
-                    next.pos.extend_from_slice(&self.rows[k].pos);
-                    drop_zeros(&mut next);
-                    pattern_of = None;
-                } else {
-                    pattern_of = Some(k);
-                }
+                pattern_of = Some(k);
             } else {
                 if let Some(j) = pattern_of.take() {
                     w.pos.clear();
@@ -465,6 +460,9 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
                         }
                         (Some(_), Some((pb, b))) => {
                             j += 1;
+                            if is_zero(&b) {
+                                continue;
+                            }
                             (pb, [0.0; L], b)
                         }
                         (Some((pa, a)), None) => {
@@ -473,6 +471,10 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
                         }
                         (None, Some((pb, b))) => {
                             j += 1;
+                            if is_zero(&b) {
+                                // A zero the row carries (module doc): no fill.
+                                continue;
+                            }
                             (pb, [0.0; L], b)
                         }
                         (None, None) => unreachable!(),
@@ -578,16 +580,17 @@ pub(super) fn drop_zeros<const L: usize>(row: &mut Row<L>) {
 /// pivot) when [`align`] finds no fill inside row k: row k ← c·row k + s·rest and `next` ←
 /// c·rest − s·row k on row k's pattern (a loop over contiguous values), the positions of
 /// `rest` beyond row k's last appended to row k (`next` gets their values too): afterwards
-/// `next` holds the row's values on row k's whole pattern. Returns the number of entries
-/// appended to row k and whether `next` has zeros (which the row drops); `None`, with
-/// nothing changed, when there is fill inside the row.
+/// `next` holds the row's values on row k's whole pattern (a value may be an exact zero, where
+/// the rotation cancelled: the rotations that follow skip it as a pivot, and no row of R gains
+/// an entry from it). Returns the number of entries appended to row k; `None`, with nothing
+/// changed, when there is fill inside the row.
 fn rotate_in_place<const L: usize>(
     row: &mut Row<L>,
     (c, s): ([f64; L], [f64; L]),
     (rest_pos, rest_val): (&[u32], &[[f64; L]]),
     next: &mut Vec<[f64; L]>,
     aligned: &mut Vec<[f64; L]>,
-) -> Option<(usize, bool)> {
+) -> Option<usize> {
     let (xs, inside) = align(row, (rest_pos, rest_val), aligned)?;
     next.clear();
     next.extend(row.val.iter_mut().zip(xs).map(|(r, x)| {
@@ -597,18 +600,21 @@ fn rotate_in_place<const L: usize>(
         }
         wn
     }));
-    let mut zero = has_zero(next);
+    let before = row.len();
     for (&p, x) in rest_pos[inside..].iter().zip(&rest_val[inside..]) {
+        if is_zero(x) {
+            // A zero the row carries: no fill.
+            continue;
+        }
         // Fill beyond row k's last position: row k's entry there is 0.
         let (mut rn, mut wn) = ([0.0; L], [0.0; L]);
         for l in 0..L {
             (rn[l], wn[l]) = turn(false, (c[l], s[l]), 0.0, x[l]);
         }
         row.push(p, rn);
-        zero |= is_zero(&wn);
         next.push(wn);
     }
-    Some((rest_pos.len() - inside, zero))
+    Some(row.len() - before)
 }
 
 /// Keep the entries of `row` at `positions` (a subset of its own, ascending), in order.
