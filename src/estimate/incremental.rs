@@ -1413,8 +1413,21 @@ mod tests {
             .chain(f.rows[0].iter().map(|(p, [v])| (p as usize, v)))
             .collect();
         let nnz = f.nnz;
-        add(&mut f, &mut rows, r0, 0.0);
+        add(&mut f, &mut rows, r0.clone(), 0.0);
         assert_eq!(f.nnz, nnz, "the cancelled row filled nothing");
+        // Row 0 of R again but for its last entry: the first rotation (c = s) cancels every
+        // entry but that one, and the row goes on carrying exact zeros, which are skipped as
+        // pivots and stored nowhere.
+        let mut partly = r0;
+        if let Some(last) = partly.last_mut() {
+            last.1 += 0.5;
+        }
+        add(&mut f, &mut rows, partly, 0.2);
+        assert_eq!(f.nnz, nnz, "the carried zeros filled nothing");
+        assert!(
+            f.rows.iter().all(|r| r.val.iter().all(|v| !is_zero(v))),
+            "a zero stored in R"
+        );
         for v in 1..n {
             add(
                 &mut f,
