@@ -159,12 +159,19 @@ impl<const L: usize> Row<L> {
 /// and the rows of a re-linearisation, module `online::estimate`) takes at a step whose own
 /// work on the factor (its rotations) was `own` entries of R, against that usual block, `base`
 /// entries: up to [`LIGHT_SHARE`] times as much at a light step (an odometry row, a few dozen
-/// entries), a quarter at a heavy one (a loop closure's rotations, as many entries as the
-/// block or more): `max(1/4, LIGHT_SHARE − own/base)`. The slowest steps are loop closures',
+/// entries), nothing beyond the least block ([`MIN_LEVELLED`]; for a re-linearisation's rows, a
+/// quarter of their least block) at a heavy one (a loop closure's rotations, as many entries as
+/// the block or more): `max(0, LIGHT_SHARE − own/base)`. The slowest steps are loop closures',
 /// and a block added to them adds to the p99. Counted work, so the same steps in every run,
-/// and the same with one lane or two (entries, not values).
+/// and the same with one lane or two (entries, not values). Until 2026-12-07 (forty-third
+/// session) a heavy step took a quarter of the block: of city10000's 160 slowest loop
+/// closures, 66 carried a re-linearisation's block. With nothing (`so2lin stream FILE --json`,
+/// robot order, the newest pose read after every step, alternating, twelve rounds): city10000
+/// p99 median 93.9 against 99.8 µs (seven lower), M3500 74.9 against 77.8 µs (eight lower); the
+/// fast pose's mean distance to the exact one 0.048 m on M3500 and 0.104 m on city10000
+/// (0.0476 and 0.103 before; `cargo run --release --example fast_pose_lag -- FILE`).
 pub(crate) fn levelled(own: u64, base: usize) -> f64 {
-    (LIGHT_SHARE - own as f64 / base.max(1) as f64).max(0.25)
+    (LIGHT_SHARE - own as f64 / base.max(1) as f64).max(0.0)
 }
 
 /// The share of its usual block a pass takes at the lightest steps ([`levelled`]). A pass

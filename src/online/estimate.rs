@@ -220,7 +220,9 @@ const ROW_STEPS: usize = 4;
 /// rounds (worst step 1.35–3.41 against 1.38–3.62 ms), the fast pose 0.0476 against 0.0473 m from the exact one on average; city10000,
 /// whose first 16 000 rows it also bounds, within the noise (eleven rounds: median 129.2
 /// against 126.0 µs, five lower; worst step 3.26–5.96 against 3.52–4.95 ms). Larger files write a quarter of their rows a step
-/// ([`ROW_STEPS`]), above this.
+/// ([`ROW_STEPS`]), above this. A heavy step, whose share of a block is nothing
+/// ([`crate::estimate::incremental::levelled`]), writes a quarter of this, so that a run of
+/// loop closures does not stall the rows.
 const MIN_ROW_BLOCK: usize = 1024;
 
 /// Live work (entries of the factor visited by the steps' rotations and solves, counted)
@@ -959,7 +961,8 @@ impl Estimate {
                     return;
                 }
                 let share = with_factor!(&self.factors, both => both.step_share());
-                let block = (edges / ROW_STEPS).max(MIN_ROW_BLOCK) as f64 * share;
+                let block = ((edges / ROW_STEPS).max(MIN_ROW_BLOCK) as f64 * share)
+                    .max((MIN_ROW_BLOCK / 4) as f64);
                 let end = edges.min(next + block as usize);
                 self.relin_rows.clear();
                 for (a, z) in tails(graph, next..end) {
