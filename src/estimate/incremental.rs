@@ -52,7 +52,7 @@ mod spread;
 
 pub(crate) use dissection::{Dissection, dissected_order};
 pub(crate) use factored::{amd_order, fill_reducing_order};
-use rotate::{Undo, align, drop_zeros};
+use rotate::{Undo, align};
 use spread::Spread;
 
 /// The off-diagonal entries of a row of R (or of a row being rotated in): positions
@@ -159,9 +159,10 @@ impl<const L: usize> Row<L> {
 /// and the rows of a re-linearisation, module `online::estimate`) takes at a step whose own
 /// work on the factor (its rotations) was `own` entries of R, against that usual block, `base`
 /// entries: up to [`LIGHT_SHARE`] times as much at a light step (an odometry row, a few dozen
-/// entries), nothing beyond the least block ([`MIN_LEVELLED`]; for a re-linearisation's rows, a
-/// quarter of their least block) at a heavy one (a loop closure's rotations, as many entries as
-/// the block or more): `max(0, LIGHT_SHARE − own/base)`. The slowest steps are loop closures',
+/// entries), falling with the step's own work to nothing beyond the least block
+/// ([`MIN_LEVELLED`]; for a re-linearisation's rows, a quarter of their least block) at a step
+/// whose rotations visit [`LIGHT_SHARE`] times the block or more (a heavy loop closure):
+/// `max(0, LIGHT_SHARE − own/base)`. The slowest steps are loop closures',
 /// and a block added to them adds to the p99. Counted work, so the same steps in every run,
 /// and the same with one lane or two (entries, not values). Until 2026-12-07 (forty-third
 /// session) a heavy step took a quarter of the block: of city10000's 160 slowest loop
@@ -245,15 +246,6 @@ impl<const L: usize> Lanes<L> for [f64; L] {
     fn lanes(self) -> [f64; L] {
         self
     }
-}
-
-/// Whether some entry is zero in every lane: one pass without an early exit, which the
-/// compiler vectorises (an early exit per entry cost a seventh of an M3500 stream's time).
-#[inline]
-fn has_zero<const L: usize>(values: &[[f64; L]]) -> bool {
-    values.iter().fold(false, |z, v| {
-        z | v.iter().fold(true, |all, &x| all & (x == 0.0))
-    })
 }
 
 /// Whether every lane of an entry is zero (the entry is absent).
@@ -517,14 +509,13 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
             let row = &self.rows[k];
             let rest = (&w.pos[head + 1..], &w.val[head + 1..]);
             if let Some((xs, inside)) = align(row, rest, &mut self.aligned) {
+                // On row k's pattern, exact zeros included: the loop skips them as pivots and
+                // the merge below drops them (as a rotation carries them, module `rotate`).
                 next.pos.extend_from_slice(&row.pos);
                 next.val.extend(
                     (row.val.iter().zip(xs))
                         .map(|(a, x)| std::array::from_fn(|l| x[l] - a[l] * y[l])),
                 );
-                if has_zero(&next.val) {
-                    drop_zeros(&mut next);
-                }
                 for (&p, x) in rest.0[inside..].iter().zip(&rest.1[inside..]) {
                     if !is_zero(x) {
                         next.push(p, *x);

@@ -53,7 +53,7 @@
 //! on city10000 the three take a median 3.5, 7 and 24 steps, on M3500 0 (the headings in the
 //! step that starts it), 3 and 7 (scratch counters, 2026-12-07). Each block is sized by
 //! its step's own work on the factor, up to 1.25 times its share at a light step (an odometry row)
-//! and a quarter at a loop closure's heavy one (`estimate::incremental::levelled`), so that no
+//! and only its least block at a loop closure's heavy one (`estimate::incremental::levelled`), so that no
 //! step pays for a whole pass over the factor, and the heaviest steps pay little: each
 //! heading row added, or measurement moved, changes the headings by a potential driven between
 //! its two ends, which by the maximum principle moves no node by more than it moves the edge's

@@ -338,20 +338,6 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
                 _ => false,
             };
             self.work += (L * (1 + self.rows[k].len() + w.val.len() - head)) as u64;
-            if self.recording
-                && let Some(u) = &mut self.undo
-            {
-                u.rows.push(Rotated {
-                    k: k as u32,
-                    positions: NONE,
-                    len: self.rows[k].len() as u32,
-                    diag: self.diag[k],
-                    d: self.d[k],
-                    c: [1.0; L],
-                    s: [0.0; L],
-                    pivot: wk,
-                });
-            }
             let (mut c, mut s) = ([1.0; L], [0.0; L]);
             let mut indefinite = false;
             let r = self.diag[k];
@@ -395,9 +381,18 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
             }
             if self.recording
                 && let Some(u) = &mut self.undo
-                && let Some(r) = u.rows.last_mut()
             {
-                (r.c, r.s) = (c, s);
+                // Row k as the row found it (it is turned below), and the rotation.
+                u.rows.push(Rotated {
+                    k: k as u32,
+                    positions: NONE,
+                    len: self.rows[k].len() as u32,
+                    diag: r,
+                    d: self.d[k],
+                    c,
+                    s,
+                    pivot: wk,
+                });
             }
             if log_spread && let Some(sp) = self.spread.as_deref_mut() {
                 sp.log(k, c, s);
@@ -560,20 +555,6 @@ pub(super) fn align<'a, const L: usize>(
 #[inline]
 fn same(a: &[u32], b: &[u32]) -> bool {
     a.len() == b.len() && a.iter().zip(b).fold(0, |acc, (x, y)| acc | (x ^ y)) == 0
-}
-
-/// Drop the zeros of `row` (entries zero in every lane; in order).
-pub(super) fn drop_zeros<const L: usize>(row: &mut Row<L>) {
-    let mut o = 0;
-    for t in 0..row.len() {
-        if !is_zero(&row.val[t]) {
-            row.pos[o] = row.pos[t];
-            row.val[o] = row.val[t];
-            o += 1;
-        }
-    }
-    row.pos.truncate(o);
-    row.val.truncate(o);
 }
 
 /// Rotate row k of R in place with the row being rotated in (`rest`: its entries after row k's
