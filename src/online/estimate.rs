@@ -52,9 +52,10 @@
 //! keep being rotated in: [`Laplacian::relinearise`], module `estimate::incremental::spread`);
 //! on city10000 the three take a median 3.5, 7 and 24 steps, on M3500 0 (the headings in the
 //! step that starts it), 3 and 7 (scratch counters, 2026-12-07). Each block is sized by
-//! its step's own work on the factor, up to 1.25 times its share at a light step (an odometry row)
-//! and only its least block at a loop closure's heavy one (`estimate::incremental::levelled`), so that no
-//! step pays for a whole pass over the factor, and the heaviest steps pay little: each
+//! its step's own work on the factor, up to 1.25 times its share at a light step (an odometry
+//! row) and only its least block at a loop closure's heavy one
+//! (`estimate::incremental::levelled`), so that no step pays for a whole pass over the factor,
+//! and the heaviest steps pay little: each
 //! heading row added, or measurement moved, changes the headings by a potential driven between
 //! its two ends, which by the maximum principle moves no node by more than it moves the edge's
 //! own difference `θ_b − θ_a` — known from the rotations (`(δ − (θ̂_b − θ̂_a))(1 − Πc²)`,
@@ -217,10 +218,11 @@ const ROW_STEPS: usize = 4;
 /// in one or two steps of about 60 µs (15–30 ns a row), 5 of its 54 slowest; at 1 024
 /// (alternating runs, `so2lin stream M3500.g2o --json`, robot order, the newest pose read after
 /// every step, 2026-12-07) its p99 median was 98.8 against 103.9 µs, lower in seven of eight
-/// rounds (worst step 1.35–3.41 against 1.38–3.62 ms), the fast pose 0.0476 against 0.0473 m from the exact one on average; city10000,
-/// whose first 16 000 rows it also bounds, within the noise (eleven rounds: median 129.2
-/// against 126.0 µs, five lower; worst step 3.26–5.96 against 3.52–4.95 ms). Larger files write a quarter of their rows a step
-/// ([`ROW_STEPS`]), above this. A heavy step, whose share of a block is nothing
+/// rounds (worst step 1.35–3.41 against 1.38–3.62 ms), the fast pose 0.0476 against 0.0473 m
+/// from the exact one on average; city10000, whose first 16 000 rows it also bounds, within the
+/// noise (eleven rounds: median 129.2 against 126.0 µs, five lower; worst step 3.26–5.96
+/// against 3.52–4.95 ms). Larger files write a quarter of their rows a step ([`ROW_STEPS`]),
+/// above this. A heavy step, whose share of a block is nothing
 /// ([`crate::estimate::incremental::levelled`]), writes a quarter of this, so that a run of
 /// loop closures does not stall the rows.
 const MIN_ROW_BLOCK: usize = 1024;

@@ -18,11 +18,13 @@
 //! otherwise row k is rebuilt by a merge. The row goes on with row k's pattern; where a
 //! rotation cancelled exactly it carries a zero, which later rotations skip as a pivot and
 //! never store as fill (until 2026-12-07 a second pass over each rotated row looked for such
-//! zeros to drop them: a sixteenth of city10000's robot thread, `perf`). A tentative row ([`SqrtInfo::try_row`]) records
-//! each rotation it makes — row k's old length (or, after a merge, its old positions), its
-//! diagonal and right-hand side, the rotation's `(c, s)` and the row's pivot `w_k` — and
-//! [`SqrtInfo::undo_row`] turns the rotations back, last first: with `w'` the row after the
-//! rotation at k (zero after the last one),
+//! zeros to drop them: a sixteenth of city10000's robot thread, `perf`). A tentative row
+//! ([`SqrtInfo::try_row`]) records each rotation it makes — row k's old length (or, after a
+//! merge, its old positions), its diagonal `r` and right-hand side, and the row's pivot `w_k`
+//! — and [`SqrtInfo::undo_row`] turns the rotations back, last first, each with the `(c, s)`
+//! it had, `c = r/ρ`, `s = w_k/ρ` from the diagonal `ρ` the rotation left (no later rotation
+//! of the same row turns row k again: its positions only grow), the same bits: with `w'` the
+//! row after the rotation at k (zero after the last one),
 //!
 //! ```text
 //! R_k ← c R_k − s w',     w ← s R_k + c w'     (on row k's pattern; w_k from the record),
@@ -68,8 +70,8 @@ impl<const K: usize, const L: usize> Default for Undo<K, L> {
 
 /// One rotation of a tentative row: the row of R it turned (position k) as the row found it —
 /// its length, where its positions start in the [`Undo`] record if a merge rebuilt it, its
-/// diagonal and right-hand side — and the rotation: `(c, s)` per lane and the row's pivot
-/// value `w_k`.
+/// diagonal and right-hand side — and the row's pivot value `w_k`, from which and the two
+/// diagonals the rotation's `(c, s)` follow ([`Rotated::turned`]).
 #[derive(Clone, Copy, Debug)]
 struct Rotated<const K: usize, const L: usize> {
     k: u32,
@@ -78,9 +80,32 @@ struct Rotated<const K: usize, const L: usize> {
     len: u32,
     diag: [f64; L],
     d: [f64; K],
-    c: [f64; L],
-    s: [f64; L],
     pivot: [f64; L],
+}
+
+impl<const K: usize, const L: usize> Rotated<K, L> {
+    /// The rotation's `(c, s)` per lane, given the diagonal `rho` it left at k: what
+    /// [`SqrtInfo::rotate`] computed, the same bits (`c = r/ρ`, `s = w_k/ρ`; a lane without a
+    /// pivot did not turn).
+    fn turned(&self, rho: [f64; L]) -> ([f64; L], [f64; L]) {
+        let turned = |l: usize| self.pivot[l] != 0.0;
+        (
+            std::array::from_fn(|l| {
+                if turned(l) {
+                    self.diag[l] / rho[l]
+                } else {
+                    1.0
+                }
+            }),
+            std::array::from_fn(|l| {
+                if turned(l) {
+                    self.pivot[l] / rho[l]
+                } else {
+                    0.0
+                }
+            }),
+        )
+    }
 }
 
 impl<const K: usize, const L: usize> SqrtInfo<K, L> {
@@ -129,7 +154,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
     /// [`Self::keep_row`] or [`Self::undo_row`] (no other change in between). Returns the
     /// [`Leftover`]: the row's prediction error and variance come with the rotations that add
     /// it (`β − aᵀx̂ = residual/Πc`, `1 + aᵀ(RᵀR)⁻¹a = 1/Πc²`), so a caller can judge the row
-    /// before keeping it, at the cost of one copy of the rows it touched.
+    /// before keeping it, at the cost of a small record per rotation ([`Rotated`]).
     pub fn try_row<C: Lanes<L>>(
         &mut self,
         entries: &[(usize, C)],
@@ -225,6 +250,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         after.clear();
         for r in u.rows.iter().rev() {
             let k = r.k as usize;
+            let (c, s) = r.turned(self.diag[k]);
             let row = &mut self.rows[k];
             before.clear();
             before.push(r.k, r.pivot);
@@ -242,7 +268,7 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
                 };
                 let mut back = [0.0; L];
                 for l in 0..L {
-                    (v[l], back[l]) = unturn((r.c[l], r.s[l]), v[l], x[l]);
+                    (v[l], back[l]) = unturn((c[l], s[l]), v[l], x[l]);
                 }
                 before.push(*p, back);
             }
@@ -389,8 +415,6 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
                     len: self.rows[k].len() as u32,
                     diag: r,
                     d: self.d[k],
-                    c,
-                    s,
                     pivot: wk,
                 });
             }
