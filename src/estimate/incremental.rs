@@ -168,7 +168,8 @@ impl<const L: usize> Row<L> {
 /// session) a heavy step took a quarter of the block: of city10000's 160 slowest loop
 /// closures, 66 carried a re-linearisation's block. With nothing (`so2lin stream FILE --json`,
 /// robot order, the newest pose read after every step, alternating, twelve rounds): city10000
-/// p99 median 93.9 against 99.8 µs (seven lower), M3500 74.9 against 77.8 µs (eight lower); the
+/// p99 median 93.9 against 99.8 µs (seven lower; worst step 3.19–5.64 against 3.78–8.04 ms),
+/// M3500 74.9 against 77.8 µs (eight lower; worst step 1.64–3.95 against 1.42–4.40 ms); the
 /// fast pose's mean distance to the exact one 0.048 m on M3500 and 0.104 m on city10000
 /// (0.0476 and 0.103 before; `cargo run --release --example fast_pose_lag -- FILE`).
 pub(crate) fn levelled(own: u64, base: usize) -> f64 {
