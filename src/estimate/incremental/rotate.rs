@@ -86,7 +86,8 @@ struct Rotated<const K: usize, const L: usize> {
 impl<const K: usize, const L: usize> Rotated<K, L> {
     /// The rotation's `(c, s)` per lane, given the diagonal `rho` it left at k: what
     /// [`SqrtInfo::rotate`] computed, the same bits (`c = r/ρ`, `s = w_k/ρ`; a lane without a
-    /// pivot did not turn).
+    /// pivot did not turn). Only an update's rotations are recorded (a tried row is never a
+    /// downdate, whose `(c, s)` are `ρ/r` and `w_k/r`), which `rotate` asserts.
     fn turned(&self, rho: [f64; L]) -> ([f64; L], [f64; L]) {
         let turned = |l: usize| self.pivot[l] != 0.0;
         (
@@ -328,6 +329,8 @@ impl<const K: usize, const L: usize> SqrtInfo<K, L> {
         downdate: bool,
     ) -> Result<([f64; K], [f64; L]), Indefinite> {
         let work_before = self.work;
+        // The undo record derives an update's rotations only ([`Rotated::turned`]).
+        debug_assert!(!(self.recording && downdate));
         self.spread_begin_row(downdate);
         let mut w = std::mem::take(&mut self.w);
         let mut next = std::mem::take(&mut self.w_next);
